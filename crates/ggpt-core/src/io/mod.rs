@@ -1,0 +1,4 @@
+//! File formats (`formats.md`). Every reader rejects malformed input with a [`crate::CoreError`]
+//! naming the file, the key and the problem; every writer is atomic (temp file + rename).
+
+pub mod atomic;

@@ -1,0 +1,1 @@
+//! GGPT network (filled in by the network work).

@@ -1,0 +1,1 @@
+//! GGPT SfM stage (filled in by the SfM work).

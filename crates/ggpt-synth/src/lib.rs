@@ -1,0 +1,1 @@
+//! Synthetic scene generator (filled in by the synthetic-scene work).
