@@ -1,0 +1,1 @@
+//! Scene pipeline (filled in by the pipeline work).
