@@ -2,3 +2,6 @@
 //! naming the file, the key and the problem; every writer is atomic (temp file + rename).
 
 pub mod atomic;
+pub mod matches;
+pub mod scene_dir;
+pub mod st;
