@@ -5,3 +5,4 @@ pub mod atomic;
 pub mod matches;
 pub mod scene_dir;
 pub mod st;
+pub mod official;

@@ -117,8 +117,9 @@ pub fn detect_layout(dir: &Path) -> Result<Layout> {
 pub fn read_scene(dir: &Path) -> Result<Scene> {
     let scene = match detect_layout(dir)? {
         Layout::Project => read_project_scene(dir)?,
-        other => {
-            return Err(CoreError::format(dir, "", format!("{other:?} layout: reader not built yet")));
+        Layout::Official => crate::io::official::read_official_dir(dir)?,
+        Layout::InferFolder => {
+            return Err(CoreError::format(dir, "", "formats.md §5.1 folder: reader not built yet"));
         }
     };
     scene.validate()?;
