@@ -6,3 +6,5 @@ pub mod matches;
 pub mod scene_dir;
 pub mod st;
 pub mod official;
+pub mod npy;
+pub mod ggpt_eval;
