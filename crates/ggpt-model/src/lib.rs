@@ -1,1 +1,3 @@
 //! GGPT network (filled in by the network work).
+
+pub mod plan;
