@@ -8,3 +8,4 @@ pub mod st;
 pub mod official;
 pub mod npy;
 pub mod ggpt_eval;
+pub mod infer_folder;

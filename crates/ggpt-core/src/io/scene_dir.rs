@@ -118,9 +118,7 @@ pub fn read_scene(dir: &Path) -> Result<Scene> {
     let scene = match detect_layout(dir)? {
         Layout::Project => read_project_scene(dir)?,
         Layout::Official => crate::io::official::read_official_dir(dir)?,
-        Layout::InferFolder => {
-            return Err(CoreError::format(dir, "", "formats.md §5.1 folder: reader not built yet"));
-        }
+        Layout::InferFolder => crate::io::infer_folder::read_infer_folder(dir)?,
     };
     scene.validate()?;
     Ok(scene)
@@ -176,7 +174,7 @@ fn file_sum(rel: &str, bytes: &[u8]) -> FileSum {
 }
 
 /// Matcher names become file names: `[A-Za-z0-9._+-]`, 1..=128 chars, not starting with `.`.
-fn check_matcher_name(dir: &Path, name: &str) -> Result<()> {
+pub(crate) fn check_matcher_name(dir: &Path, name: &str) -> Result<()> {
     let ok = !name.is_empty()
         && name.len() <= 128
         && !name.starts_with('.')
