@@ -71,7 +71,7 @@ fn reads_numpy_written_fixture_files() {
 fn npy_with_header(dict: &str, major: u8, data: &[u8]) -> Vec<u8> {
     let mut h = dict.to_string();
     let pre = if major == 1 { 10 } else { 12 };
-    while (pre + h.len() + 1) % 64 != 0 {
+    while !(pre + h.len() + 1).is_multiple_of(64) {
         h.push(' ');
     }
     h.push('\n');

@@ -9,3 +9,5 @@ pub mod official;
 pub mod npy;
 pub mod ggpt_eval;
 pub mod infer_folder;
+pub mod ply;
+pub mod colmap;
