@@ -3,9 +3,6 @@
 //! itself; taps f > 13 read rep(neighbour voxel); taps f < 13 add, to rep(v) only, the sum over all
 //! tokens of the neighbour voxel. Neighbours are looked up within the same chunk only.
 
-use std::collections::HashMap;
-use std::hash::{BuildHasherDefault, Hasher};
-
 use rayon::prelude::*;
 
 /// Number of taps of a 3x3x3 kernel.
@@ -53,31 +50,8 @@ pub fn tap_offset(f: usize) -> [i32; 3] {
     [(f / 9) as i32 - 1, ((f / 3) % 3) as i32 - 1, (f % 3) as i32 - 1]
 }
 
-/// A fast, well-mixed hasher for `u64` voxel keys (splitmix64 finaliser).
-#[derive(Default, Clone, Copy)]
-pub(crate) struct VoxelHasher(u64);
-
-impl Hasher for VoxelHasher {
-    fn finish(&self) -> u64 {
-        let mut z = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 = self.0.rotate_left(8) ^ b as u64;
-        }
-    }
-    fn write_u64(&mut self, v: u64) {
-        self.0 = v;
-    }
-}
-
-/// Hash map keyed by packed voxel keys.
-pub(crate) type VoxelMap<V> = HashMap<u64, V, BuildHasherDefault<VoxelHasher>>;
-
 /// Packs `(chunk, x, y, z)` into `chunk << 48 | x << 32 | y << 16 | z`; `None` outside `[0, 2^16)`.
+/// Keys sort like `(chunk, x, y, z)` lexicographically.
 fn voxel_key(chunk: usize, g: [i32; 3]) -> Option<u64> {
     let ok = |v: i32| (0..1 << 16).contains(&v);
     if !(ok(g[0]) && ok(g[1]) && ok(g[2]) && chunk < 1 << 16) {
@@ -86,59 +60,52 @@ fn voxel_key(chunk: usize, g: [i32; 3]) -> Option<u64> {
     Some(((chunk as u64) << 48) | ((g[0] as u64) << 32) | ((g[1] as u64) << 16) | g[2] as u64)
 }
 
-/// Voxel set of a level: tokens grouped per `(chunk, voxel)`.
+/// Marker for "no voxel".
+const NONE: u32 = u32::MAX;
+
+/// Voxel set of a level: tokens grouped per `(chunk, voxel)`, voxels sorted by packed key.
 struct Voxels {
-    /// Voxel id of each token.
+    /// Voxel id of each token (`NONE` for a token outside the key range, never produced).
     voxel_of: Vec<u32>,
-    /// Packed key of each voxel.
+    /// Packed key of each voxel, strictly ascending.
     keys: Vec<u64>,
     /// CSR offsets (`len = voxels + 1`) into `members`.
     member_start: Vec<usize>,
     /// Token indices per voxel, ascending (the first one is the representative).
     members: Vec<usize>,
-    /// Key -> voxel id.
-    map: VoxelMap<u32>,
 }
 
 impl Voxels {
     fn build(grid: &[[i32; 3]], offsets: &[usize]) -> Voxels {
         let n = grid.len();
-        let mut map: VoxelMap<u32> = VoxelMap::with_capacity_and_hasher(n, Default::default());
-        let mut voxel_of = vec![u32::MAX; n];
-        let mut keys = Vec::new();
-        let mut counts: Vec<usize> = Vec::new();
+        let mut keyed: Vec<(u64, usize)> = Vec::with_capacity(n);
         let mut start = 0usize;
         for (b, &end) in offsets.iter().enumerate() {
-            for q in start..end.min(n) {
-                let Some(key) = voxel_key(b, grid[q]) else { continue };
-                let id = *map.entry(key).or_insert_with(|| {
-                    keys.push(key);
-                    counts.push(0);
-                    (keys.len() - 1) as u32
-                });
-                voxel_of[q] = id;
-                if let Some(c) = counts.get_mut(id as usize) {
-                    *c += 1;
+            for (q, g) in grid.iter().enumerate().take(end.min(n)).skip(start) {
+                if let Some(key) = voxel_key(b, *g) {
+                    keyed.push((key, q));
                 }
             }
             start = end;
         }
-        let mut member_start = Vec::with_capacity(counts.len() + 1);
-        member_start.push(0);
-        let mut acc = 0;
-        for c in &counts {
-            acc += c;
-            member_start.push(acc);
-        }
-        let mut fill = member_start.clone();
-        let mut members = vec![0usize; acc];
-        for (q, &v) in voxel_of.iter().enumerate() {
-            if let Some(slot) = fill.get_mut(v as usize) {
-                members[*slot] = q;
-                *slot += 1;
+        // Sorting by (key, token) groups each voxel's tokens in ascending token order.
+        keyed.par_sort_unstable();
+        let mut voxel_of = vec![NONE; n];
+        let mut keys: Vec<u64> = Vec::new();
+        let mut member_start = Vec::new();
+        let mut members = Vec::with_capacity(keyed.len());
+        for &(key, q) in &keyed {
+            if keys.last() != Some(&key) {
+                keys.push(key);
+                member_start.push(members.len());
             }
+            if let Some(slot) = voxel_of.get_mut(q) {
+                *slot = (keys.len() - 1) as u32;
+            }
+            members.push(q);
         }
-        Voxels { voxel_of, keys, member_start, members, map }
+        member_start.push(members.len());
+        Voxels { voxel_of, keys, member_start, members }
     }
 
     fn members(&self, v: usize) -> &[usize] {
@@ -148,20 +115,33 @@ impl Voxels {
         }
     }
 
-    /// Neighbour voxel id of every voxel for offset `d` (same chunk), `u32::MAX` if inactive.
+    fn rep(&self, v: usize) -> Option<usize> {
+        self.members(v).first().copied()
+    }
+
+    /// Neighbour voxel id of every voxel for offset `d` (same chunk; `NONE` if inactive), by a
+    /// merge join: `key + delta(d)` is increasing along the sorted keys whenever it is valid.
     fn neighbours(&self, d: [i32; 3]) -> Vec<u32> {
-        self.keys
-            .iter()
-            .map(|&key| {
-                let chunk = (key >> 48) as usize;
-                let g = [
-                    ((key >> 32) & 0xffff) as i32 + d[0],
-                    ((key >> 16) & 0xffff) as i32 + d[1],
-                    (key & 0xffff) as i32 + d[2],
-                ];
-                voxel_key(chunk, g).and_then(|k| self.map.get(&k).copied()).unwrap_or(u32::MAX)
-            })
-            .collect()
+        let delta = ((d[0] as i64) << 32) + ((d[1] as i64) << 16) + d[2] as i64;
+        let inside = |key: u64, shift: u32, dd: i32| {
+            let c = ((key >> shift) & 0xffff) as i32 + dd;
+            (0..1 << 16).contains(&c)
+        };
+        let mut out = vec![NONE; self.keys.len()];
+        let mut j = 0usize;
+        for (i, &key) in self.keys.iter().enumerate() {
+            if !(inside(key, 32, d[0]) && inside(key, 16, d[1]) && inside(key, 0, d[2])) {
+                continue;
+            }
+            let target = (key as i64 + delta) as u64;
+            while j < self.keys.len() && self.keys[j] < target {
+                j += 1;
+            }
+            if self.keys.get(j) == Some(&target) {
+                out[i] = j as u32;
+            }
+        }
+        out
     }
 }
 
@@ -169,7 +149,26 @@ impl Voxels {
 /// of every token and the per-chunk exclusive end `offsets`. Tokens are level-local indices.
 pub fn build_conv_table(grid: &[[i32; 3]], offsets: &[usize]) -> ConvTable {
     let vox = Voxels::build(grid, offsets);
-    let has_duplicates = vox.keys.len() < grid.len();
+    let has_duplicates = vox.keys.len() < vox.members.len();
+    // Neighbour maps of the 13 positive taps; a negative tap is the inverse relation of its
+    // mirrored positive tap (v + d = u  <=>  u - d = v).
+    let positive: Vec<Vec<u32>> =
+        (CENTER_TAP + 1..NUM_TAPS).into_par_iter().map(|f| vox.neighbours(tap_offset(f))).collect();
+    let neighbour_map = |f: usize| -> Vec<u32> {
+        if f > CENTER_TAP {
+            positive.get(f - CENTER_TAP - 1).cloned().unwrap_or_default()
+        } else {
+            let mut inv = vec![NONE; vox.keys.len()];
+            if let Some(pos) = positive.get(NUM_TAPS - 1 - f - CENTER_TAP - 1) {
+                for (v, &u) in pos.iter().enumerate() {
+                    if let Some(slot) = inv.get_mut(u as usize) {
+                        *slot = v as u32;
+                    }
+                }
+            }
+            inv
+        }
+    };
     let taps: Vec<TapPairs> = (0..NUM_TAPS)
         .into_par_iter()
         .map(|f| {
@@ -177,23 +176,33 @@ pub fn build_conv_table(grid: &[[i32; 3]], offsets: &[usize]) -> ConvTable {
                 let id: Vec<usize> = (0..grid.len()).collect();
                 return TapPairs { target: id.clone(), source: id };
             }
-            let nb = vox.neighbours(tap_offset(f));
-            let mut pairs = TapPairs::default();
+            let nb = neighbour_map(f);
+            // Exact pair count first (avoids re-allocations on large levels).
+            let count: usize = vox
+                .voxel_of
+                .iter()
+                .enumerate()
+                .map(|(q, &v)| match nb.get(v as usize) {
+                    Some(&u) if u != NONE && f > CENTER_TAP => 1,
+                    Some(&u) if u != NONE && vox.rep(v as usize) == Some(q) => vox.members(u as usize).len(),
+                    _ => 0,
+                })
+                .sum();
+            let mut pairs = TapPairs { target: Vec::with_capacity(count), source: Vec::with_capacity(count) };
             for (q, &v) in vox.voxel_of.iter().enumerate() {
                 let Some(&u) = nb.get(v as usize) else { continue };
-                if u == u32::MAX {
+                if u == NONE {
                     continue;
                 }
-                let src = vox.members(u as usize);
                 if f > CENTER_TAP {
                     // Every token reads the representative of the neighbour voxel.
-                    if let Some(&rep) = src.first() {
+                    if let Some(rep) = vox.rep(u as usize) {
                         pairs.target.push(q);
                         pairs.source.push(rep);
                     }
-                } else if vox.members(v as usize).first() == Some(&q) {
+                } else if vox.rep(v as usize) == Some(q) {
                     // Only representatives receive, summed over all tokens of the neighbour voxel.
-                    for &j in src {
+                    for &j in vox.members(u as usize) {
                         pairs.target.push(q);
                         pairs.source.push(j);
                     }

@@ -1,0 +1,149 @@
+//! Host planning benchmark (`ggpt_model::plan`, network.md §3-§8): times the whole
+//! `plan_batch` of one synthetic surface-like chunk and its stages (encoding, grid +
+//! serialization, neighbour tables, pooling) and prints one table row per size.
+//!
+//! ```text
+//! cargo run --release -p ggpt-model --bin bench_plan -- --tokens 100000,400000 --repeat 3
+//! ```
+//! `--tokens` counts level-0 tokens (pixels + DLT tokens, 1/3 of the pixels carry guidance);
+//! `--threads` sets the rayon pool size (default: all cores). Wall times are the minimum over
+//! repeats; "plan_batch CPU s" is the mean process CPU time (all threads) of one `plan_batch`,
+//! which stays meaningful on a machine shared with other jobs.
+
+use std::time::Instant;
+
+use ggpt_model::plan::serialize::{compute_codes, orders_and_inverses, serialization_depth};
+use ggpt_model::plan::{ChunkInput, PlanConfig, build_conv_table, encode_chunk, grid_coord, plan_batch, pool_level};
+
+/// Every `GUIDANCE_EVERY`-th pixel carries a DLT point.
+const GUIDANCE_EVERY: usize = 3;
+
+fn usage() -> ! {
+    eprintln!("usage: bench_plan [--tokens N[,N...]] [--repeat R] [--threads T]");
+    std::process::exit(2)
+}
+
+/// A wavy surface seen from a camera (`k` pixels on a grid, normalised chunk coordinates) with
+/// guidance points close to their dense points, so voxels hold duplicates as in real chunks.
+fn surface_chunk(k: usize, seed: u64) -> ChunkInput {
+    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    let mut next = move || {
+        s ^= s << 13;
+        s ^= s >> 7;
+        s ^= s << 17;
+        (s >> 11) as f32 / (1u64 << 53) as f32
+    };
+    let w = (k as f32).sqrt().ceil() as usize;
+    let mut c = ChunkInput::default();
+    for i in 0..k {
+        let (u, v) = ((i % w) as f32 / w as f32 * 2.0 - 1.0, (i / w) as f32 / w as f32 * 2.0 - 1.0);
+        let z = 0.35 * (2.5 * u).sin() * (1.7 * v).cos() + 0.1 * (7.0 * u * v).sin();
+        let p = [0.98 * u + 0.002 * next(), 0.98 * v, z];
+        c.ff_pts.push(p);
+        c.ff_conf.push(1.0 + 5.0 * next());
+        let g = i % GUIDANCE_EVERY == 0;
+        c.geo_msk.push(g);
+        c.geo_pts.push([p[0] + 0.004 * (next() - 0.5), p[1] + 0.004 * (next() - 0.5), p[2]]);
+    }
+    c
+}
+
+/// CPU time (user + system, all threads) of this process in seconds, from `/proc/self/stat`
+/// (Linux; 0 elsewhere). Insensitive to other processes competing for the cores.
+fn process_cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else { return 0.0 };
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
+    let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else { return 0.0 };
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    // rest starts at field 3 (state): field k is index k - 3. Clock ticks are 100 Hz on Linux.
+    (ticks(11) + ticks(12)) / 100.0
+}
+
+/// Minimum wall time in seconds of `f` over `repeat` runs, and its last result.
+fn time<T>(repeat: usize, mut f: impl FnMut() -> T) -> (f64, T) {
+    let mut best = f64::INFINITY;
+    let mut out = None;
+    for _ in 0..repeat.max(1) {
+        let t = Instant::now();
+        let r = f();
+        best = best.min(t.elapsed().as_secs_f64());
+        out = Some(r);
+    }
+    match out {
+        Some(r) => (best, r),
+        None => usage(),
+    }
+}
+
+fn main() {
+    let mut tokens = vec![100_000usize, 400_000];
+    let mut repeat = 3usize;
+    let mut threads = 0usize;
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        let val = args.next().unwrap_or_else(|| usage());
+        match a.as_str() {
+            "--tokens" => tokens = val.split(',').map(|v| v.parse().unwrap_or_else(|_| usage())).collect(),
+            "--repeat" => repeat = val.parse().unwrap_or_else(|_| usage()),
+            "--threads" => threads = val.parse().unwrap_or_else(|_| usage()),
+            _ => usage(),
+        }
+    }
+    if threads > 0 && rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().is_err() {
+        eprintln!("could not set the rayon pool size");
+    }
+    let cfg = PlanConfig::released();
+    println!(
+        "| tokens | voxels L0 | conv pairs L0 | threads | encode s | grid+serialize L0 s | conv L0 s | pool L0 s | plan_batch s | plan_batch CPU s | tokens per level |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    for &n in &tokens {
+        let k = n * GUIDANCE_EVERY / (GUIDANCE_EVERY + 1);
+        let chunk = surface_chunk(k, 42);
+        let (t_enc, feats) = time(repeat, || encode_chunk(&chunk));
+        let feats = feats.unwrap_or_else(|e| {
+            eprintln!("encode failed: {e}");
+            std::process::exit(1)
+        });
+        let offsets = [feats.num_tokens];
+        let (t_ser, (grid, codes, orders, depth)) = time(repeat, || {
+            let grid: Vec<[i32; 3]> = feats.coord.iter().map(|&c| grid_coord(c, cfg.grid_resolution)).collect();
+            let depth = vec![serialization_depth(&grid)];
+            let codes = compute_codes(&grid, &offsets, &depth);
+            let (orders, _) = orders_and_inverses(&codes, &offsets);
+            (grid, codes, orders, depth)
+        });
+        let (t_conv, table) = time(repeat, || build_conv_table(&grid, &offsets));
+        let (t_pool, _) = time(repeat, || pool_level(&grid, &codes, &orders[0], &offsets, &depth));
+        let cpu0 = process_cpu_seconds();
+        let (t_plan, plan) = time(repeat, || plan_batch(std::slice::from_ref(&chunk), &cfg));
+        let cpu_plan = (process_cpu_seconds() - cpu0) / repeat.max(1) as f64;
+        let plan = plan.unwrap_or_else(|e| {
+            eprintln!("plan failed: {e}");
+            std::process::exit(1)
+        });
+        let sizes: Vec<String> = plan.levels.iter().map(|l| l.num_tokens.to_string()).collect();
+        let voxels = {
+            let mut g = grid.clone();
+            g.sort_unstable();
+            g.dedup();
+            g.len()
+        };
+        let pairs: usize = table.taps.iter().map(|t| t.len()).sum();
+        println!(
+            "| {} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} |",
+            feats.num_tokens,
+            voxels,
+            pairs,
+            rayon::current_num_threads(),
+            t_enc,
+            t_ser,
+            t_conv,
+            t_pool,
+            t_plan,
+            cpu_plan,
+            sizes.join(" / ")
+        );
+    }
+}
