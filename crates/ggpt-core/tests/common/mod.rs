@@ -1,6 +1,8 @@
 //! Shared helpers of the io integration tests.
 #![allow(dead_code)]
 
+pub mod torch;
+
 use std::path::PathBuf;
 
 use ggpt_core::{Cameras, Dims, FeedForward, GroundTruth, MatchSet, Scene, SfmResult};
