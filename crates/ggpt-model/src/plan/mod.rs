@@ -160,6 +160,11 @@ impl LevelPlan {
     pub fn counts(&self) -> Vec<usize> {
         counts_from_offsets(&self.offsets)
     }
+    /// Token range of chunk `b` at this level (empty if `b` is out of range).
+    pub fn chunk_range(&self, b: usize) -> std::ops::Range<usize> {
+        let start = if b == 0 { 0 } else { self.offsets.get(b - 1).copied().unwrap_or(0) };
+        start..self.offsets.get(b).copied().unwrap_or(start)
+    }
     /// The official padding tables of this level (network.md §7.3).
     pub fn official_attn_tables(&self) -> OfficialAttnTables {
         official_attn_tables(&self.counts(), self.patch_size)
@@ -361,6 +366,36 @@ mod tests {
                 }
             } else {
                 assert!(lv.pool_to_next.is_none());
+            }
+        }
+    }
+
+    /// Chunks with different depths (8 and 9) planned together equal their single plans.
+    #[test]
+    fn batched_equals_single_with_different_depths() {
+        let mut a = synthetic_chunk(500, 7);
+        for p in a.ff_pts.iter_mut().chain(a.geo_pts.iter_mut()) {
+            *p = [p[0] * 0.5 - 0.4, p[1] * 0.5 - 0.4, p[2] * 0.5 - 0.4];
+        }
+        let b = synthetic_chunk(300, 8);
+        let cfg = PlanConfig { grid_resolution: 384, patch_size: vec![64, 32, 32, 16, 16], num_levels: 5 };
+        let pa = plan_batch(std::slice::from_ref(&a), &cfg).unwrap();
+        let pb = plan_batch(std::slice::from_ref(&b), &cfg).unwrap();
+        assert_eq!(pa.levels[0].depth, [8]);
+        assert_eq!(pb.levels[0].depth, [9]);
+        let both = plan_batch(&[a, b], &cfg).unwrap();
+        for (l, lv) in both.levels.iter().enumerate() {
+            assert_eq!(lv.depth, [pa.levels[l].depth[0], pb.levels[l].depth[0]]);
+            for (ci, single) in [(0usize, &pa), (1, &pb)] {
+                let r = lv.chunk_range(ci);
+                let sl = &single.levels[l];
+                assert_eq!(r.len(), sl.num_tokens);
+                assert_eq!(lv.grid[r.clone()], sl.grid[..]);
+                for row in 0..NUM_ORDERS {
+                    assert_eq!(lv.codes[row][r.clone()], sl.codes[row][..]);
+                    let shifted: Vec<usize> = sl.order[row].iter().map(|&t| t + r.start).collect();
+                    assert_eq!(lv.order[row][r.clone()], shifted[..]);
+                }
             }
         }
     }
