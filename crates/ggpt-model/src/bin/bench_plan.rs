@@ -6,9 +6,9 @@
 //! cargo run --release -p ggpt-model --bin bench_plan -- --tokens 100000,400000 --repeat 3
 //! ```
 //! `--tokens` counts level-0 tokens (pixels + DLT tokens, 1/3 of the pixels carry guidance);
-//! `--threads` sets the rayon pool size (default: all cores). Wall times are the minimum over
-//! repeats; "plan_batch CPU s" is the mean process CPU time (all threads) of one `plan_batch`,
-//! which stays meaningful on a machine shared with other jobs.
+//! `--threads` sets the rayon pool size (default: all cores). "CPU s" columns are the mean process
+//! CPU time (all threads, 10 ms resolution) per run, meaningful on a machine shared with other
+//! jobs; the wall time is the minimum over repeats.
 
 use std::time::Instant;
 
@@ -60,18 +60,20 @@ fn process_cpu_seconds() -> f64 {
     (ticks(11) + ticks(12)) / 100.0
 }
 
-/// Minimum wall time in seconds of `f` over `repeat` runs, and its last result.
-fn time<T>(repeat: usize, mut f: impl FnMut() -> T) -> (f64, T) {
+/// Runs `f` `repeat` times: (minimum wall seconds, mean process CPU seconds, last result).
+fn time<T>(repeat: usize, mut f: impl FnMut() -> T) -> (f64, f64, T) {
     let mut best = f64::INFINITY;
     let mut out = None;
+    let cpu0 = process_cpu_seconds();
     for _ in 0..repeat.max(1) {
         let t = Instant::now();
         let r = f();
         best = best.min(t.elapsed().as_secs_f64());
         out = Some(r);
     }
+    let cpu = (process_cpu_seconds() - cpu0) / repeat.max(1) as f64;
     match out {
-        Some(r) => (best, r),
+        Some(r) => (best, cpu, r),
         None => usage(),
     }
 }
@@ -95,30 +97,28 @@ fn main() {
     }
     let cfg = PlanConfig::released();
     println!(
-        "| tokens | voxels L0 | conv pairs L0 | threads | encode s | grid+serialize L0 s | conv L0 s | pool L0 s | plan_batch s | plan_batch CPU s | tokens per level |"
+        "| tokens | voxels L0 | conv pairs L0 | threads | CPU s: encode | grid+serialize L0 | conv L0 | pool L0 | plan_batch | wall s: plan_batch | tokens per level |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
     for &n in &tokens {
         let k = n * GUIDANCE_EVERY / (GUIDANCE_EVERY + 1);
         let chunk = surface_chunk(k, 42);
-        let (t_enc, feats) = time(repeat, || encode_chunk(&chunk));
+        let (_, c_enc, feats) = time(repeat, || encode_chunk(&chunk));
         let feats = feats.unwrap_or_else(|e| {
             eprintln!("encode failed: {e}");
             std::process::exit(1)
         });
         let offsets = [feats.num_tokens];
-        let (t_ser, (grid, codes, orders, depth)) = time(repeat, || {
+        let (_, c_ser, (grid, codes, orders, depth)) = time(repeat, || {
             let grid: Vec<[i32; 3]> = feats.coord.iter().map(|&c| grid_coord(c, cfg.grid_resolution)).collect();
             let depth = vec![serialization_depth(&grid)];
             let codes = compute_codes(&grid, &offsets, &depth);
             let (orders, _) = orders_and_inverses(&codes, &offsets);
             (grid, codes, orders, depth)
         });
-        let (t_conv, table) = time(repeat, || build_conv_table(&grid, &offsets));
-        let (t_pool, _) = time(repeat, || pool_level(&grid, &codes, &orders[0], &offsets, &depth));
-        let cpu0 = process_cpu_seconds();
-        let (t_plan, plan) = time(repeat, || plan_batch(std::slice::from_ref(&chunk), &cfg));
-        let cpu_plan = (process_cpu_seconds() - cpu0) / repeat.max(1) as f64;
+        let (_, c_conv, table) = time(repeat, || build_conv_table(&grid, &offsets));
+        let (_, c_pool, _) = time(repeat, || pool_level(&grid, &codes, &orders[0], &offsets, &depth));
+        let (t_plan, cpu_plan, plan) = time(repeat, || plan_batch(std::slice::from_ref(&chunk), &cfg));
         let plan = plan.unwrap_or_else(|e| {
             eprintln!("plan failed: {e}");
             std::process::exit(1)
@@ -137,12 +137,12 @@ fn main() {
             voxels,
             pairs,
             rayon::current_num_threads(),
-            t_enc,
-            t_ser,
-            t_conv,
-            t_pool,
-            t_plan,
+            c_enc,
+            c_ser,
+            c_conv,
+            c_pool,
             cpu_plan,
+            t_plan,
             sizes.join(" / ")
         );
     }
