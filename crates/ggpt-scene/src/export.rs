@@ -1,0 +1,408 @@
+//! Export of a refined scene (`pipeline.md` §9): PLY point clouds, npy / npz arrays, a COLMAP
+//! sparse model and the run metadata files.
+//!
+//! PLY filter (official demo behaviour): threshold `τ` = the `q` quantile (default 0.2, linear
+//! interpolation like `torch.quantile`) of the confidence over **all** `N h w` pixels (uncovered
+//! pixels count with confidence 0; above 10^6 values every `s`-th value in pixel order,
+//! `s = floor(n / 10^6) * 5`), keep `conf >= τ`, then a seeded uniform subset of at most
+//! `max_points` (kept in pixel order). Colours: `floor(255 · clamp(v, 0, 1))`.
+//!
+//! Files: `ggpt_points.ply` (refined, SfM frame), `ff_points.ply` (unaligned feed-forward points
+//! of the same pixels, feed-forward frame), `sfm_points.ply` (DLT points, SfM frame, ≤ 10^6,
+//! no confidence filter); `points.npy`, `confidence.npy`, `covered.npy`, `depth.npy` (`z` of the
+//! refined points in the SfM cameras, scene units), `scene.npz`; `sparse/0/` (COLMAP);
+//! `config.json`, `meta.json`.
+
+use std::path::Path;
+
+use ggpt_core::io::atomic::write_bytes_atomic;
+use ggpt_core::io::colmap::{ColmapModel, ColmapPoint2D, ColmapPoint3D, write_colmap};
+use ggpt_core::io::npy::{NpyArray, NpyData, write_npy, write_npz};
+use ggpt_core::io::ply::{PlyCloud, write_ply};
+use ggpt_core::{Cameras, Scene, SfmResult};
+use rand::SeedableRng;
+
+use crate::driver::RefinedScene;
+use crate::error::{SceneError, check_len};
+
+/// Default confidence quantile of the PLY filter (`--conf-quantile`, `pipeline.md` §9.1).
+pub const DEFAULT_CONF_QUANTILE: f64 = 0.2;
+/// Default maximum number of PLY points (`--max-points`, `pipeline.md` §9.1).
+pub const DEFAULT_MAX_POINTS: usize = 1_000_000;
+/// Above this many values the quantile is computed on a strided subset (`pipeline.md` §9.1).
+pub const QUANTILE_MAX_VALUES: usize = 1_000_000;
+/// Stride multiplier of the quantile subset: `s = floor(n / 10^6) * 5` (`pipeline.md` §9.1).
+pub const QUANTILE_STRIDE_FACTOR: usize = 5;
+/// Default maximum number of COLMAP `points3D` (`pipeline.md` §9.3).
+pub const DEFAULT_COLMAP_MAX_POINTS: usize = 100_000;
+
+/// `torch.quantile(values, q)` with linear interpolation, reproducing torch's `f32` arithmetic:
+/// `rank = f32(q) · (n - 1)` in `f32`, `lo = floor(rank)`, `w = rank - lo`, then torch's `lerp`
+/// (`a + w (b - a)` for `w < 0.5`, else `b - (b - a)(1 - w)`). Errors on empty input, `q`
+/// outside `[0, 1]` or non-finite values.
+pub fn torch_quantile(values: &[f32], q: f64) -> Result<f32, SceneError> {
+    if values.is_empty() {
+        return Err(SceneError::Invalid("quantile of an empty array".into()));
+    }
+    if !(0.0..=1.0).contains(&q) {
+        return Err(SceneError::Invalid(format!("quantile q = {q} outside [0, 1]")));
+    }
+    crate::error::check_finite("quantile input", values)?;
+    let n = values.len();
+    let rank = (q as f32) * ((n - 1) as f32);
+    let lo = (rank.floor() as usize).min(n - 1);
+    let hi = (rank.ceil() as usize).min(n - 1);
+    let w = rank - lo as f32;
+    let mut v = values.to_vec();
+    let (_, &mut a, upper) = v.select_nth_unstable_by(lo, f32::total_cmp);
+    let b = if hi == lo { a } else { upper.iter().copied().min_by(f32::total_cmp).unwrap_or(a) };
+    Ok(if w < 0.5 { a + w * (b - a) } else { b - (b - a) * (1.0 - w) })
+}
+
+/// The PLY confidence threshold `τ` (`pipeline.md` §9.1): [`torch_quantile`] of `conf` (all
+/// pixels, pixel order), on every `s`-th value when there are more than 10^6 values.
+pub fn confidence_threshold(conf: &[f32], q: f64) -> Result<f32, SceneError> {
+    let n = conf.len();
+    if n > QUANTILE_MAX_VALUES {
+        let s = (n / QUANTILE_MAX_VALUES) * QUANTILE_STRIDE_FACTOR;
+        let sub: Vec<f32> = conf.iter().step_by(s).copied().collect();
+        torch_quantile(&sub, q)
+    } else {
+        torch_quantile(conf, q)
+    }
+}
+
+/// Colour conversion of the official export: `floor(255 · clamp(v, 0, 1))` in `f32`.
+pub fn color_u8(v: f32) -> u8 {
+    let c = if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) };
+    (255.0f32 * c).floor() as u8
+}
+
+/// Seeded uniform subset of `indices` of size `max` (all of them when there are fewer), kept in
+/// the input order. The same seed and input always give the same subset.
+pub fn subsample(indices: &[u32], max: usize, seed: u64) -> Vec<u32> {
+    if indices.len() <= max {
+        return indices.to_vec();
+    }
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+    let mut pick = rand::seq::index::sample(&mut rng, indices.len(), max).into_vec();
+    pick.sort_unstable();
+    pick.into_iter().filter_map(|i| indices.get(i).copied()).collect()
+}
+
+/// Pixels kept by the PLY filter: `conf >= τ`, then [`subsample`] to `max_points`.
+pub fn select_points(conf: &[f32], q: f64, max_points: usize, seed: u64) -> Result<(f32, Vec<u32>), SceneError> {
+    let tau = confidence_threshold(conf, q)?;
+    let keep: Vec<u32> = conf.iter().enumerate().filter(|(_, c)| **c >= tau).map(|(p, _)| p as u32).collect();
+    Ok((tau, subsample(&keep, max_points, seed)))
+}
+
+/// COLMAP export options (`pipeline.md` §9.3).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
+pub struct ColmapExportOptions {
+    /// Text files instead of binary (`--colmap-text`).
+    pub text: bool,
+    /// Write the filtered refined points as `points3D` (`--colmap-points none` -> false).
+    pub points: bool,
+    /// Maximum number of `points3D` (seeded subset).
+    pub max_points: usize,
+    /// Original image resolution `(H, W)` to rescale the cameras to; `None` keeps the ff
+    /// resolution (`--colmap-resolution ff`).
+    pub resolution: Option<(usize, usize)>,
+    /// One shared camera (as the BA used).
+    pub shared_camera: bool,
+    /// `SIMPLE_PINHOLE` instead of `PINHOLE`.
+    pub simple_pinhole: bool,
+}
+
+impl Default for ColmapExportOptions {
+    fn default() -> Self {
+        ColmapExportOptions { text: false, points: true, max_points: DEFAULT_COLMAP_MAX_POINTS, resolution: None, shared_camera: true, simple_pinhole: false }
+    }
+}
+
+/// Export options (`pipeline.md` §9).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
+pub struct ExportOptions {
+    /// Confidence quantile of the PLY filter (`--conf-quantile`).
+    pub conf_quantile: f64,
+    /// Maximum PLY points (`--max-points`).
+    pub max_points: usize,
+    /// Seed of the subsampling.
+    pub seed: u64,
+    /// Write the `confidence` PLY property.
+    pub ply_confidence: bool,
+    /// Write the PLY files.
+    pub ply: bool,
+    /// Write the npy / npz arrays.
+    pub arrays: bool,
+    /// COLMAP model (`None`: not written).
+    pub colmap: Option<ColmapExportOptions>,
+    /// Image file names for COLMAP (`None`: `000000.png`, ...).
+    pub image_names: Option<Vec<String>>,
+}
+
+impl Default for ExportOptions {
+    fn default() -> Self {
+        ExportOptions {
+            conf_quantile: DEFAULT_CONF_QUANTILE,
+            max_points: DEFAULT_MAX_POINTS,
+            seed: crate::driver::DEFAULT_SEED,
+            ply_confidence: true,
+            ply: true,
+            arrays: true,
+            colmap: Some(ColmapExportOptions::default()),
+            image_names: None,
+        }
+    }
+}
+
+/// What was written.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ExportSummary {
+    /// Confidence threshold `τ`.
+    pub threshold: f32,
+    /// Points in `ggpt_points.ply` / `ff_points.ply`.
+    pub ply_points: usize,
+    /// Points in `sfm_points.ply`.
+    pub sfm_points: usize,
+    /// COLMAP `points3D`.
+    pub colmap_points: usize,
+    /// Files written (relative to the output folder).
+    pub files: Vec<String>,
+}
+
+fn p3(a: &[f32], p: usize) -> [f32; 3] {
+    match a.get(3 * p..3 * p + 3) {
+        Some(s) => [s[0], s[1], s[2]],
+        None => [0.0; 3],
+    }
+}
+
+fn colors(images: &[f32], pixels: &[u32]) -> Vec<[u8; 3]> {
+    pixels.iter().map(|&p| p3(images, p as usize).map(color_u8)).collect()
+}
+
+/// Depth `z` of every refined point in its own view's camera (`cam_from_world_sfm`), `[P]`.
+pub fn depth_map(points: &[f32], cameras: &Cameras, hw: usize) -> Result<Vec<f32>, SceneError> {
+    if hw == 0 || points.len() % 3 != 0 || (points.len() / 3) % hw != 0 || points.len() / 3 / hw != cameras.len() {
+        return Err(SceneError::Invalid(format!("depth: {} point values for {} cameras of {hw} pixels", points.len(), cameras.len())));
+    }
+    Ok(points
+        .chunks_exact(3)
+        .enumerate()
+        .map(|(p, x)| {
+            let m = &cameras.cam_from_world[p / hw];
+            (m[(2, 0)] * f64::from(x[0]) + m[(2, 1)] * f64::from(x[1]) + m[(2, 2)] * f64::from(x[2]) + m[(2, 3)]) as f32
+        })
+        .collect())
+}
+
+fn arr(shape: Vec<usize>, data: NpyData) -> Result<NpyArray, SceneError> {
+    Ok(NpyArray::new(shape, data)?)
+}
+
+/// Writes `config.json` / `meta.json`-style pretty JSON atomically.
+pub fn write_json(path: &Path, value: &serde_json::Value) -> Result<(), SceneError> {
+    let text = serde_json::to_string_pretty(value).map_err(|e| SceneError::Invalid(format!("{}: cannot serialise JSON: {e}", path.display())))?;
+    write_bytes_atomic(path, format!("{text}\n").as_bytes())?;
+    Ok(())
+}
+
+/// Builds the COLMAP model of §9.3: cameras (optionally rescaled to the original resolution),
+/// images `1..N`, and `points` (pixel indices of refined points) as `points3D` with one-element
+/// tracks observed at their own pixel.
+pub fn colmap_model(refined: &RefinedScene, images: &[f32], cameras: &Cameras, names: &[String], points: &[u32], opts: &ColmapExportOptions) -> Result<ColmapModel, SceneError> {
+    let d = refined.dims;
+    let (hh, ww) = opts.resolution.unwrap_or((d.h, d.w));
+    let (sx, sy) = (ww as f64 / d.w as f64, hh as f64 / d.h as f64);
+    let mut scaled = cameras.clone();
+    for k in &mut scaled.intrinsics {
+        k[(0, 0)] *= sx;
+        k[(1, 1)] *= sy;
+        k[(0, 2)] = (ww as f64 - 1.0) / 2.0;
+        k[(1, 2)] = (hh as f64 - 1.0) / 2.0;
+    }
+    let mut model = ColmapModel::from_cameras(&scaled, hh, ww, names, opts.simple_pinhole, opts.shared_camera)?;
+    let hw = d.hw();
+    for (i, &p) in points.iter().enumerate() {
+        let p = p as usize;
+        let (view, k) = (p / hw, p % hw);
+        let (y, x) = ((k / d.w) as f64, (k % d.w) as f64);
+        let image = model.images.get_mut(view).ok_or_else(|| SceneError::Invalid(format!("colmap: pixel {p} beyond {} views", d.n)))?;
+        let idx2d = u32::try_from(image.points2d.len()).map_err(|_| SceneError::Invalid("colmap: too many observations".into()))?;
+        let id = i as u64 + 1;
+        image.points2d.push(ColmapPoint2D { xy: [(x + 0.5) * sx, (y + 0.5) * sy], point3d_id: Some(id) });
+        let xyz = p3(&refined.points, p).map(f64::from);
+        model.points3d.push(ColmapPoint3D { id, xyz, rgb: p3(images, p).map(color_u8), error: 0.0, track: vec![(image.id, idx2d)] });
+    }
+    Ok(model)
+}
+
+/// Writes every export file of §9 into `dir` (created if needed). `scene` provides the images
+/// and the unaligned feed-forward points, `sfm` the cameras and DLT points, `refined` the output
+/// of [`crate::driver::refine_scene`]. `config` / `meta` are written as `config.json` /
+/// `meta.json` (with this export's summary added under `"export"` in `meta`).
+pub fn export_scene(
+    dir: &Path,
+    scene: &Scene,
+    sfm: &SfmResult,
+    refined: &RefinedScene,
+    opts: &ExportOptions,
+    config: &serde_json::Value,
+    meta: &serde_json::Value,
+) -> Result<ExportSummary, SceneError> {
+    let d = refined.dims;
+    let px = d.pixels();
+    check_len("export: refined points", refined.points.len(), 3 * px)?;
+    check_len("export: refined confidence", refined.conf.len(), px)?;
+    check_len("export: images", scene.images.len(), 3 * px)?;
+    check_len("export: sfm points", sfm.points.len(), 3 * px)?;
+    check_len("export: sfm mask", sfm.mask.len(), px)?;
+    let ff = scene.ff.as_ref().ok_or_else(|| SceneError::Invalid("export: the scene has no feed-forward prediction".into()))?;
+    check_len("export: ff points", ff.points.len(), 3 * px)?;
+    let mut files = Vec::new();
+    let (tau, keep) = select_points(&refined.conf, opts.conf_quantile, opts.max_points, opts.seed)?;
+    let mut sfm_count = 0;
+    if opts.ply {
+        let cols = colors(&scene.images, &keep);
+        let conf_of = |c: &[f32]| opts.ply_confidence.then(|| keep.iter().map(|&p| c.get(p as usize).copied().unwrap_or(0.0)).collect());
+        let refined_cloud = PlyCloud { points: keep.iter().map(|&p| p3(&refined.points, p as usize)).collect(), colors: cols.clone(), confidence: conf_of(&refined.conf) };
+        write_ply(&dir.join("ggpt_points.ply"), &refined_cloud)?;
+        let ff_cloud = PlyCloud { points: keep.iter().map(|&p| p3(&ff.points, p as usize)).collect(), colors: cols, confidence: conf_of(&ff.conf) };
+        write_ply(&dir.join("ff_points.ply"), &ff_cloud)?;
+        let dlt: Vec<u32> = sfm.mask.iter().enumerate().filter(|(_, m)| **m).map(|(p, _)| p as u32).collect();
+        let dlt = subsample(&dlt, opts.max_points, opts.seed);
+        sfm_count = dlt.len();
+        let sfm_cloud = PlyCloud { points: dlt.iter().map(|&p| p3(&sfm.points, p as usize)).collect(), colors: colors(&scene.images, &dlt), confidence: None };
+        write_ply(&dir.join("sfm_points.ply"), &sfm_cloud)?;
+        files.extend(["ggpt_points.ply", "ff_points.ply", "sfm_points.ply"].map(String::from));
+    }
+    if opts.arrays {
+        let (n, h, w) = (d.n, d.h, d.w);
+        let points = arr(vec![n, h, w, 3], NpyData::F32(refined.points.clone()))?;
+        let conf = arr(vec![n, h, w], NpyData::F32(refined.conf.clone()))?;
+        let covered = arr(vec![n, h, w], NpyData::Bool(refined.covered.clone()))?;
+        let depth = arr(vec![n, h, w], NpyData::F32(depth_map(&refined.points, &sfm.cameras, d.hw())?))?;
+        let cams = arr(vec![n, 3, 4], NpyData::F64(sfm.cameras.cam_from_world.iter().flat_map(|m| (0..12).map(move |i| m[(i / 4, i % 4)])).collect()))?;
+        let ks = arr(vec![n, 3, 3], NpyData::F64(sfm.cameras.intrinsics.iter().flat_map(|m| (0..9).map(move |i| m[(i / 3, i % 3)])).collect()))?;
+        let imgs = arr(vec![n, h, w, 3], NpyData::U8(scene.images.iter().map(|&v| color_u8(v)).collect()))?;
+        write_npy(&dir.join("points.npy"), &points)?;
+        write_npy(&dir.join("confidence.npy"), &conf)?;
+        write_npy(&dir.join("covered.npy"), &covered)?;
+        write_npy(&dir.join("depth.npy"), &depth)?;
+        let members = [("points", &points), ("confidence", &conf), ("covered", &covered), ("depth", &depth), ("cam_from_world", &cams), ("K", &ks), ("images_ff", &imgs)];
+        write_npz(&dir.join("scene.npz"), &members, false)?;
+        files.extend(["points.npy", "confidence.npy", "covered.npy", "depth.npy", "scene.npz"].map(String::from));
+    }
+    let mut colmap_count = 0;
+    if let Some(c) = &opts.colmap {
+        let names: Vec<String> = match &opts.image_names {
+            Some(v) => v.clone(),
+            None => (0..d.n).map(|i| format!("{i:06}.png")).collect(),
+        };
+        let pts = if c.points { subsample(&keep, c.max_points, opts.seed) } else { Vec::new() };
+        colmap_count = pts.len();
+        let model = colmap_model(refined, &scene.images, &sfm.cameras, &names, &pts, c)?;
+        write_colmap(&dir.join("sparse/0"), &model, c.text)?;
+        files.push("sparse/0".into());
+    }
+    let summary = ExportSummary { threshold: tau, ply_points: keep.len(), sfm_points: sfm_count, colmap_points: colmap_count, files };
+    write_json(&dir.join("config.json"), config)?;
+    let mut meta = meta.clone();
+    if let serde_json::Value::Object(m) = &mut meta {
+        m.insert("export".into(), serde_json::to_value(&summary).map_err(|e| SceneError::Invalid(format!("meta.json: {e}")))?);
+    }
+    write_json(&dir.join("meta.json"), &meta)?;
+    Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantile_matches_torch() {
+        // torch.quantile(torch.tensor([1., 2., 3., 4., 5.]), 0.2) = 1.8
+        let got = torch_quantile(&[5.0, 1.0, 4.0, 2.0, 3.0], 0.2).unwrap();
+        assert!((got - 1.8).abs() < 1e-6, "{got}");
+        // torch.quantile(torch.tensor([0., 0., 0., 10.]), 0.2) = 0.0 (rank 0.6 between 0 and 0)
+        assert_eq!(torch_quantile(&[0.0, 10.0, 0.0, 0.0], 0.2).unwrap(), 0.0);
+        // torch.quantile(torch.tensor([0., 0., 1., 2., 3., 4., 5., 6., 7., 8.]), 0.2) = 0.8
+        // (rank 0.2*9 = 1.8 -> lerp(0, 1, 0.8) = 1 - 1*(1-0.8) = 0.8 in f32: 0.79999995)
+        let v = [0.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0];
+        let got = torch_quantile(&v, 0.2).unwrap();
+        let rank = 0.2f32 * 9.0;
+        let w = rank - 1.0;
+        assert_eq!(got, 1.0 - 1.0 * (1.0 - w));
+        assert!((got - 0.8).abs() < 1e-6);
+        // Single value, q = 0 and q = 1.
+        assert_eq!(torch_quantile(&[3.5], 0.2).unwrap(), 3.5);
+        assert_eq!(torch_quantile(&[4.0, 1.0, 2.0], 0.0).unwrap(), 1.0);
+        assert_eq!(torch_quantile(&[4.0, 1.0, 2.0], 1.0).unwrap(), 4.0);
+        // torch.quantile(torch.tensor([1., 3.]), 0.25) = 1.5
+        assert_eq!(torch_quantile(&[3.0, 1.0], 0.25).unwrap(), 1.5);
+        assert!(torch_quantile(&[], 0.2).is_err());
+        assert!(torch_quantile(&[1.0], 1.5).is_err());
+        assert!(torch_quantile(&[f32::NAN], 0.5).is_err());
+    }
+
+    #[test]
+    fn strided_quantile_above_a_million() {
+        // n = 2,000,001 -> s = 10: values 0..n, subset 0, 10, 20, ... (200,001 values, max 2,000,000).
+        let n = 2_000_001usize;
+        let v: Vec<f32> = (0..n).map(|i| i as f32).collect();
+        let t = confidence_threshold(&v, 0.2).unwrap();
+        // rank = 0.2 * 200000 = 40000 -> value 400000.
+        assert_eq!(t, 400_000.0);
+        // Exactly 10^6 values: no striding.
+        let v: Vec<f32> = (0..1_000_000).map(|i| i as f32).collect();
+        let rank = 0.2f32 * 999_999.0;
+        let lo = rank.floor();
+        let w = rank - lo;
+        let want = if w < 0.5 { lo + w } else { (lo + 1.0) - (1.0 - w) };
+        assert_eq!(confidence_threshold(&v, 0.2).unwrap(), want);
+    }
+
+    #[test]
+    fn colour_conversion_truncates() {
+        assert_eq!(color_u8(0.0), 0);
+        assert_eq!(color_u8(1.0), 255);
+        assert_eq!(color_u8(1.5), 255);
+        assert_eq!(color_u8(-0.2), 0);
+        assert_eq!(color_u8(0.5), 127); // 127.5 -> 127
+        assert_eq!(color_u8(0.999), 254); // 254.745 -> 254
+        assert_eq!(color_u8(f32::NAN), 0);
+    }
+
+    #[test]
+    fn subsample_is_deterministic_uniform_and_ordered() {
+        let idx: Vec<u32> = (0..1000).collect();
+        let a = subsample(&idx, 100, 42);
+        let b = subsample(&idx, 100, 42);
+        let c = subsample(&idx, 100, 43);
+        assert_eq!(a, b);
+        assert_ne!(a, c);
+        assert_eq!(a.len(), 100);
+        assert!(a.windows(2).all(|w| w[0] < w[1]));
+        assert_eq!(subsample(&idx[..50], 100, 42), idx[..50].to_vec());
+        // Roughly uniform: each half gets a fair share.
+        let low = a.iter().filter(|&&p| p < 500).count();
+        assert!((30..=70).contains(&low), "{low}");
+    }
+
+    #[test]
+    fn select_counts_uncovered_zeros() {
+        // 10 pixels, 4 uncovered (conf 0): q = 0.2 -> rank 1.8 between 0 and 0 -> τ = 0: all kept.
+        let conf = [0.0, 0.0, 0.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
+        let (t, keep) = select_points(&conf, 0.2, 100, 1).unwrap();
+        assert_eq!(t, 0.0);
+        assert_eq!(keep.len(), 10);
+        // With q = 0.5: rank 4.5 -> lerp(1, 2, 0.5) = 1.5 -> 5 pixels kept.
+        let (t, keep) = select_points(&conf, 0.5, 100, 1).unwrap();
+        assert_eq!(t, 1.5);
+        assert_eq!(keep, vec![5, 6, 7, 8, 9]);
+    }
+}
