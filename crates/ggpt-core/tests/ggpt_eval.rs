@@ -45,6 +45,7 @@ fn raw_sequence_matches_reference() {
     let diff = raw.images.iter().zip(&ru8).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
     assert!(diff <= JPEG_DECODER_TOL_U8, "JPEG decode differs from libjpeg by {diff}");
     let mean = raw.images.iter().zip(&ru8).map(|(a, b)| a.abs_diff(*b) as f64).sum::<f64>() / ru8.len() as f64;
+    eprintln!("JPEG decode vs libjpeg: max {diff} levels, mean {mean:.3}");
     assert!(mean < 1.0, "mean JPEG decode difference {mean}");
 }
 
@@ -60,8 +61,10 @@ fn prepare_matches_gt_bin() {
     assert_eq!((n, h, w), (4, 42, 56));
     let ref_images = r.f32("gt/images", &[n, h, w, 3]).unwrap();
     let d = max_abs(&s.images, &ref_images);
+    eprintln!("bilinear resize (reference pixels) max |diff| = {d:e}");
     assert!(d <= 1e-6, "bilinear resize differs by {d}");
     let d = max_abs(&ours.images, &ref_images);
+    eprintln!("resize of our JPEG decode max |diff| = {d:e} ({:.2} u8 levels)", d * 255.0);
     assert!(d <= JPEG_DECODER_TOL_U8 as f32 / 255.0 + 1e-6, "resize of our JPEG decode differs by {d}");
     let gt = s.gt.as_ref().unwrap();
     assert_eq!(gt.mask, r.bool("gt/point_masks", &[n, h, w]).unwrap());
@@ -77,6 +80,7 @@ fn prepare_matches_gt_bin() {
     // metres from the origin, so f32 rounding of the chain is ~1e-6 m; allow 1e-5 m.
     let rp = r.f32("gt/points", &[n, h, w, 3]).unwrap();
     let d = max_abs(&gt.points, &rp);
+    eprintln!("GT points max |diff| = {d:e} m");
     assert!(d <= 1e-5, "GT points differ by {d} m");
     assert!(rp.iter().any(|&x| x != 0.0));
     // Zeros exactly where the reference has zeros.

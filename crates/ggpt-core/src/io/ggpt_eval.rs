@@ -171,9 +171,13 @@ fn round_half_even(x: f64) -> f64 {
 
 /// Feed-forward size `(h, w)` for an `H x W` input: `w = width`,
 /// `h = round(H * (width / W) / 14) * 14` (Python rounding, `pipeline.md` §2.1).
+/// A zero `width_in` gives `(0, width)`.
 pub fn ff_size(height: usize, width_in: usize, width: usize) -> (usize, usize) {
-    let h = round_half_even(height as f64 * (width as f64 / width_in as f64) / FF_PATCH as f64) as usize * FF_PATCH;
-    (h.max(FF_PATCH), width)
+    if width_in == 0 {
+        return (0, width);
+    }
+    let patches = round_half_even(height as f64 * (width as f64 / width_in as f64) / FF_PATCH as f64) as usize;
+    (patches.max(1).saturating_mul(FF_PATCH), width)
 }
 
 /// Source index and weight of a bilinear (`align_corners = false`) tap, computed in f32 like
@@ -183,8 +187,8 @@ fn linear_taps(out: usize, inp: usize) -> Vec<(usize, usize, f32)> {
     (0..out)
         .map(|i| {
             let src = ((i as f32 + 0.5) * scale - 0.5).max(0.0);
-            let i0 = (src.floor() as usize).min(inp - 1);
-            let i1 = (i0 + 1).min(inp - 1);
+            let i0 = (src.floor() as usize).min(inp.saturating_sub(1));
+            let i1 = (i0 + 1).min(inp.saturating_sub(1));
             (i0, i1, src - i0 as f32)
         })
         .collect()
@@ -193,7 +197,7 @@ fn linear_taps(out: usize, inp: usize) -> Vec<(usize, usize, f32)> {
 /// Nearest-exact source index `min(floor((i + 0.5) * in / out), in - 1)` (f32, like PyTorch).
 fn nearest_exact(out: usize, inp: usize) -> Vec<usize> {
     let scale = inp as f32 / out as f32;
-    (0..out).map(|i| (((i as f32 + 0.5) * scale).floor() as usize).min(inp - 1)).collect()
+    (0..out).map(|i| (((i as f32 + 0.5) * scale).floor() as usize).min(inp.saturating_sub(1))).collect()
 }
 
 /// Bilinear resize (no antialias) of one `H x W x C` f32 image.
@@ -259,7 +263,7 @@ pub fn prepare_ff_resolution(raw: &RawSequence, width: usize) -> Result<Scene> {
 pub fn unproject(d: &Dims, depth: &[f32], cams: &Cameras) -> Vec<f32> {
     let mut out = vec![0.0f32; 3 * d.pixels()];
     for v in 0..d.n.min(cams.len()) {
-        let k = cams.intrinsics[v];
+        let Some(&k) = cams.intrinsics.get(v) else { break };
         let (r, t) = (cams.rotation(v), cams.translation(v));
         for y in 0..d.h {
             for x in 0..d.w {
