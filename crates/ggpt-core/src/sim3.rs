@@ -125,7 +125,7 @@ fn check_pairs(src: &[Point3<f64>], tgt: &[Point3<f64>], what: &str) -> Result<(
 /// zero source variance or a non-finite result.
 pub fn umeyama(src: &[Point3<f64>], tgt: &[Point3<f64>]) -> Result<Sim3> {
     check_pairs(src, tgt, "umeyama")?;
-    umeyama_iter(src.len(), src.iter().zip(tgt.iter()).map(|(a, b)| (a, b)))
+    umeyama_iter(src.len(), src.iter().zip(tgt.iter()))
 }
 
 /// Umeyama over the pairs `(src[i], tgt[i])` with `i` in `indices`, as COLMAP's similarity
@@ -507,7 +507,8 @@ pub fn align_with_retries<R: Rng + ?Sized>(
             }
             Err(e) => tracing::debug!("robust Sim(3) with max_error {thr} failed: {e}"),
         }
-        if !(thr <= RETRY_LAST_THRESHOLD) {
+        // Retry only while the previous threshold was <= 0.3 (NaN stops).
+        if !matches!(thr.partial_cmp(&RETRY_LAST_THRESHOLD), Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)) {
             break;
         }
         thr *= RETRY_FACTOR;
