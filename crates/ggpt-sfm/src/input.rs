@@ -1,0 +1,254 @@
+//! Input readers of the `ggpt-sfm` binary (also usable from code):
+//!
+//! * feed-forward outputs: the official `ff_outputs.bin`, a scene directory
+//!   (`ggpt_core::io::scene_dir::read_scene`), or a safetensors file with the `ff/*` keys of the
+//!   `sfm_small` fixture (`ff/images_ff`, `ff/extrinsics`, `ff/intrinsics`, `ff/points`,
+//!   `ff/points_conf`);
+//! * matches: the raw-matcher interchange safetensors layout (`docs/sfm.md`), a
+//!   `formats.md` §5.2 `matches/<matcher>.safetensors` file, or a scene directory's matches.
+//!
+//! All outputs are at ff resolution, ff pixels in the pixel-centre convention, cameras
+//! `cam_from_world` (OpenCV).
+
+use std::path::Path;
+
+use ggpt_core::{Cameras, Dims, FeedForward};
+use nalgebra::{Matrix3, Matrix3x4};
+
+use crate::convert::{generic_to_ff, roma_to_ff, ufm_to_ff};
+use crate::cycle::compute_cycle_errors;
+use crate::error::{Result, SfmError};
+use crate::matches::Correspondences;
+use crate::st::StFile;
+
+/// Feed-forward input of the SfM stage.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FfInput {
+    /// Scene name (file or directory stem).
+    pub name: String,
+    /// Views and ff resolution.
+    pub dims: Dims,
+    /// `[N, h, w, 3]` RGB in `[0, 1]`.
+    pub images: Vec<f32>,
+    /// Feed-forward points, confidence and cameras.
+    pub ff: FeedForward,
+    /// Image file names when known (for the COLMAP export).
+    pub image_names: Vec<String>,
+}
+
+/// Matches input of the SfM stage: one correspondence set per matcher (config order) and the
+/// optional ranking score.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MatchesInput {
+    /// Matcher names.
+    pub names: Vec<String>,
+    /// Correspondences at ff resolution with cycle errors, diagonal applied.
+    pub sets: Vec<Correspondences>,
+    /// `[N hw]` ranking score of each source pixel (`sp_scores` / `rank_scores`).
+    pub rank_scores: Option<Vec<f32>>,
+}
+
+fn stem(path: &Path) -> String {
+    path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "scene".into())
+}
+
+/// Cameras from flat f32 `[N, 3, 4]` (or `[N, 4, 4]`) extrinsics and `[N, 3, 3]` intrinsics.
+pub fn cameras_from_flat(path: &Path, n: usize, ext: &[f32], ext_rows: usize, intr: &[f32]) -> Result<Cameras> {
+    if ext.len() != n * ext_rows * 4 || intr.len() != n * 9 || !(ext_rows == 3 || ext_rows == 4) {
+        return Err(SfmError::format(path, "extrinsics/intrinsics", format!("{} / {} values for {n} views", ext.len(), intr.len())));
+    }
+    let mut cam_from_world = Vec::with_capacity(n);
+    let mut intrinsics = Vec::with_capacity(n);
+    for v in 0..n {
+        let e = &ext[v * ext_rows * 4..];
+        cam_from_world.push(Matrix3x4::from_fn(|r, c| e[r * 4 + c] as f64));
+        let k = &intr[v * 9..];
+        intrinsics.push(Matrix3::from_fn(|r, c| k[r * 3 + c] as f64));
+    }
+    Ok(Cameras { cam_from_world, intrinsics })
+}
+
+/// Reads the feed-forward input from `path` (see the module doc for the accepted forms).
+pub fn read_ff(path: &Path) -> Result<FfInput> {
+    if path.is_dir() {
+        let scene = ggpt_core::io::scene_dir::read_scene(path)?;
+        let ff = scene
+            .ff
+            .ok_or_else(|| SfmError::format(path, "ff", "the scene directory has no feed-forward outputs"))?;
+        return Ok(FfInput { name: scene.name, dims: scene.dims, images: scene.images, ff, image_names: Vec::new() });
+    }
+    let is_st = std::fs::read(path)
+        .map(|b| b.len() >= 9 && b[8] == b'{')
+        .map_err(|e| SfmError::Io { path: path.to_path_buf(), source: e })?;
+    if !is_st {
+        let b = ggpt_core::io::official::read_ff_outputs_bin(path)?;
+        let n = b.dims.n;
+        let rows = if b.extrinsics.len() == n * 16 { 4 } else { 3 };
+        let cameras = cameras_from_flat(path, n, &b.extrinsics, rows, &b.intrinsics)?;
+        let ff = FeedForward { points: b.points, conf: b.points_conf, cameras };
+        return Ok(FfInput { name: stem(path), dims: b.dims, images: b.images_ff, ff, image_names: Vec::new() });
+    }
+    let f = StFile::open(path)?;
+    let prefix = if f.has("ff/points") { "ff/" } else { "" };
+    let key = |k: &str| format!("{prefix}{k}");
+    let pts = f.f32(&key("points"))?;
+    let (n, h, w) = match pts.shape.as_slice() {
+        [n, h, w, 3] => (*n, *h, *w),
+        s => return Err(SfmError::format(path, key("points"), format!("shape {s:?} is not [N, h, w, 3]"))),
+    };
+    let dims = Dims { n, h, w };
+    let images = f.f32(&key("images_ff"))?;
+    f.expect_shape(&key("images_ff"), &images, &[n, h, w, 3])?;
+    let conf_key = if f.has(&key("points_conf")) { key("points_conf") } else { key("conf") };
+    let conf = f.f32(&conf_key)?;
+    f.expect_shape(&conf_key, &conf, &[n, h, w])?;
+    let ext = f.f32(&key("extrinsics"))?;
+    let rows = match ext.shape.as_slice() {
+        [m, r, 4] if *m == n && (*r == 3 || *r == 4) => *r,
+        s => return Err(SfmError::format(path, key("extrinsics"), format!("shape {s:?} is not [N={n}, 3|4, 4]"))),
+    };
+    let intr = f.f32(&key("intrinsics"))?;
+    f.expect_shape(&key("intrinsics"), &intr, &[n, 3, 3])?;
+    let cameras = cameras_from_flat(path, n, &ext.data, rows, &intr.data)?;
+    let ff = FeedForward { points: pts.data, conf: conf.data, cameras };
+    Ok(FfInput { name: stem(path), dims, images: images.data, ff, image_names: Vec::new() })
+}
+
+/// Reads the matches from `path` for a scene of dims `dims` (see the module doc).
+/// Shape mismatches between the matches and the images are errors naming the file and key.
+pub fn read_matches(path: &Path, dims: Dims) -> Result<MatchesInput> {
+    if path.is_dir() {
+        let scene = ggpt_core::io::scene_dir::read_scene(path)?;
+        if scene.dims != dims {
+            return Err(SfmError::Shape(format!(
+                "{}: matches are for N={} h={} w={}, the feed-forward images are N={} h={} w={}",
+                path.display(),
+                scene.dims.n,
+                scene.dims.h,
+                scene.dims.w,
+                dims.n,
+                dims.h,
+                dims.w
+            )));
+        }
+        return from_match_sets(path, &scene.matches, dims);
+    }
+    let f = StFile::open(path)?;
+    if f.has("pred_matches") {
+        let mf = ggpt_core::io::matches::read_matches(path)?;
+        if (mf.n, mf.h, mf.w) != (dims.n, dims.h, dims.w) {
+            return Err(SfmError::format(
+                path,
+                "pred_matches",
+                format!("matches are for N={} h={} w={}, the images are N={} h={} w={}", mf.n, mf.h, mf.w, dims.n, dims.h, dims.w),
+            ));
+        }
+        return from_match_sets(path, std::slice::from_ref(&mf.set), dims);
+    }
+    read_raw_matches(&f, dims)
+}
+
+fn from_match_sets(path: &Path, sets: &[ggpt_core::MatchSet], dims: Dims) -> Result<MatchesInput> {
+    if sets.is_empty() {
+        return Err(SfmError::format(path, "matches", "no matches found"));
+    }
+    let mut out = MatchesInput { names: Vec::new(), sets: Vec::new(), rank_scores: None };
+    for s in sets {
+        out.names.push(s.matcher.clone());
+        out.sets.push(Correspondences::from_match_set(s, dims)?);
+        if out.rank_scores.is_none() {
+            out.rank_scores = s.rank_scores.clone();
+        }
+    }
+    Ok(out)
+}
+
+/// Reads the raw-matcher interchange layout (`docs/sfm.md`), keys optionally prefixed `match/`:
+/// `m{i}_warp` `[N, N, Hm, Wm, 2]` + `m{i}_overlap` `[N, N, Hm, Wm]` (RoMa: normalised edge
+/// coordinates at matcher resolution, `[s, t]` = warp of view `s` into `t`), or `m{i}_flow`
+/// `[N, N, 2, Ho, Wo]` + `m{i}_covisibility` `[N, N, Ho, Wo]` (UFM: flow in output pixels), or
+/// `m{i}_pixwarp` `[N, N, Hm, Wm, 2]` + `m{i}_score` (generic matcher, matcher-pixel
+/// coordinates); `i = 0, 1, ...` consecutive; optional `sp_scores` / `rank_scores` `[N, h*w]`.
+pub fn read_raw_matches(f: &StFile, dims: Dims) -> Result<MatchesInput> {
+    let path = f.path().to_path_buf();
+    let prefix = if f.names().iter().any(|k| k.starts_with("match/")) { "match/" } else { "" };
+    let (n, h, w) = (dims.n, dims.h, dims.w);
+    let hw = h * w;
+    let mut out = MatchesInput { names: Vec::new(), sets: Vec::new(), rank_scores: None };
+    for i in 0.. {
+        let k = |s: &str| format!("{prefix}m{i}_{s}");
+        let mut corr = Correspondences { dims, matches: vec![0.0; 2 * n * n * hw], scores: vec![0.0; n * n * hw], cycle: vec![0.0; n * n * hw] };
+        let name;
+        if f.has(&k("warp")) || f.has(&k("pixwarp")) {
+            let generic = !f.has(&k("warp"));
+            let (wk, sk) = if generic { (k("pixwarp"), k("score")) } else { (k("warp"), k("overlap")) };
+            let warp = f.f32(&wk)?;
+            let (hm, wm) = match warp.shape.as_slice() {
+                [a, b, hm, wm, 2] if *a == n && *b == n => (*hm, *wm),
+                s => return Err(SfmError::format(&path, &wk, format!("shape {s:?} is not [N={n}, N={n}, Hm, Wm, 2] (the images have N={n})"))),
+            };
+            let sc = f.f32(&sk)?;
+            f.expect_shape(&sk, &sc, &[n, n, hm, wm])?;
+            for s in 0..n {
+                for t in 0..n {
+                    if s == t {
+                        continue;
+                    }
+                    let p = s * n + t;
+                    let wslice = &warp.data[p * hm * wm * 2..(p + 1) * hm * wm * 2];
+                    let sslice = &sc.data[p * hm * wm..(p + 1) * hm * wm];
+                    let (m, score) = if generic { generic_to_ff(wslice, sslice, hm, wm, h, w)? } else { roma_to_ff(wslice, sslice, hm, wm, h, w)? };
+                    put_pair(&mut corr, t, s, &m, &score);
+                }
+            }
+            name = if generic { format!("generic-{i}") } else { format!("roma-{i}") };
+        } else if f.has(&k("flow")) {
+            let flow = f.f32(&k("flow"))?;
+            let (ho, wo) = match flow.shape.as_slice() {
+                [a, b, 2, ho, wo] if *a == n && *b == n => (*ho, *wo),
+                s => return Err(SfmError::format(&path, k("flow"), format!("shape {s:?} is not [N={n}, N={n}, 2, Ho, Wo] (the images have N={n})"))),
+            };
+            let cov = f.f32(&k("covisibility"))?;
+            f.expect_shape(&k("covisibility"), &cov, &[n, n, ho, wo])?;
+            for s in 0..n {
+                for t in 0..n {
+                    if s == t {
+                        continue;
+                    }
+                    let p = s * n + t;
+                    let (m, score) = ufm_to_ff(&flow.data[p * 2 * ho * wo..(p + 1) * 2 * ho * wo], &cov.data[p * ho * wo..(p + 1) * ho * wo], ho, wo, h, w)?;
+                    put_pair(&mut corr, t, s, &m, &score);
+                }
+            }
+            name = format!("ufm-{i}");
+        } else {
+            break;
+        }
+        corr.apply_diagonal();
+        corr.sanitize();
+        compute_cycle_errors(&mut corr)?;
+        corr.apply_diagonal();
+        out.names.push(name);
+        out.sets.push(corr);
+    }
+    if out.sets.is_empty() {
+        return Err(SfmError::format(&path, format!("{prefix}m0_*"), "no matcher output found (expected m0_warp/m0_overlap, m0_flow/m0_covisibility or m0_pixwarp/m0_score, or pred_matches)"));
+    }
+    for rk in ["sp_scores", "rank_scores"] {
+        let key = format!("{prefix}{rk}");
+        if f.has(&key) {
+            let r = f.f32(&key)?;
+            f.expect_shape(&key, &r, &[n, hw])?;
+            out.rank_scores = Some(r.data);
+            break;
+        }
+    }
+    Ok(out)
+}
+
+fn put_pair(corr: &mut Correspondences, t: usize, s: usize, m: &[f32], score: &[f32]) {
+    let b = corr.idx(t, s, 0);
+    let hw = corr.dims.hw();
+    corr.matches[2 * b..2 * (b + hw)].copy_from_slice(m);
+    corr.scores[b..b + hw].copy_from_slice(score);
+}

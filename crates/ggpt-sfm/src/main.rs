@@ -1,0 +1,239 @@
+//! `ggpt-sfm`: the lightweight SfM stage of GGPT as a command-line tool (see `docs/sfm.md`).
+//!
+//! `ggpt-sfm run --ff FILE --matches FILE --preset benchmark --out DIR` writes
+//! `DIR/sfm_dlt_outputs.safetensors`, the COLMAP model `DIR/sparse/0/` and `DIR/summary.json`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand, ValueEnum};
+use ggpt_core::Cameras;
+use ggpt_sfm::ba::{CameraModel, LossFunction};
+use ggpt_sfm::input::{cameras_from_flat, read_ff, read_matches};
+use ggpt_sfm::masks::Preset;
+use ggpt_sfm::output::write_outputs;
+use ggpt_sfm::pipeline::{SfmConfig, run_sfm_correspondences};
+use ggpt_sfm::st::StFile;
+use indicatif::{ProgressBar, ProgressStyle};
+
+#[derive(Parser, Debug)]
+#[command(name = "ggpt-sfm", version, about = "GGPT lightweight SfM: dense-match filtering, bundle adjustment, DLT triangulation")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Run the SfM stage on feed-forward outputs and dense matches.
+    Run(RunArgs),
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum PresetArg {
+    /// benchmark_sfm.yaml: BA 0.6 / 2 px, DLT 0.1 / 4 px, epipolar 4 px, angle 3°, reprojection 4 px, PINHOLE.
+    Benchmark,
+    /// demo.yaml: BA 0.6 / 2 px, DLT 0.4 / 2 px, epipolar 2 px, angle 5°, reprojection 2 px, SIMPLE_PINHOLE.
+    Demo,
+    /// > 50 views: BA 0.8 / 1 px, 512 tracks per view, DLT 0.4 / 1 px, angle 7°, reprojection 1 px.
+    ManyViews,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum CameraModelArg {
+    /// fx, fy refined separately.
+    Pinhole,
+    /// One focal length.
+    SimplePinhole,
+}
+
+#[derive(clap::Args, Debug)]
+struct RunArgs {
+    /// Feed-forward outputs: official `ff_outputs.bin`, a scene directory, or a safetensors file
+    /// with `ff/images_ff`, `ff/extrinsics`, `ff/intrinsics`, `ff/points`, `ff/points_conf`.
+    #[arg(long)]
+    ff: PathBuf,
+    /// Dense matches: raw-matcher interchange safetensors (`m{i}_warp`/`m{i}_overlap`,
+    /// `m{i}_flow`/`m{i}_covisibility`, optional `sp_scores`; keys may be prefixed `match/`),
+    /// a `matches/<matcher>.safetensors` file, or a scene directory.
+    #[arg(long)]
+    matches: PathBuf,
+    /// Threshold preset.
+    #[arg(long, value_enum, default_value = "benchmark")]
+    preset: PresetArg,
+    /// BA tracks per view (`mintrack_per_view`).
+    #[arg(long)]
+    mintrack_per_view: Option<usize>,
+    /// BA correspondences need score > this.
+    #[arg(long)]
+    ba_score_thresh: Option<f64>,
+    /// BA correspondences need cycle error < this (ff pixels).
+    #[arg(long)]
+    ba_cycle_thresh: Option<f64>,
+    /// DLT correspondences need score > this.
+    #[arg(long)]
+    dlt_score_thresh: Option<f64>,
+    /// DLT correspondences need cycle error < this (ff pixels).
+    #[arg(long)]
+    dlt_cycle_thresh: Option<f64>,
+    /// Max epipolar distance (ff pixels).
+    #[arg(long)]
+    max_epipolar_error: Option<f64>,
+    /// Min triangulation angle (degrees).
+    #[arg(long)]
+    min_tri_angle: Option<f64>,
+    /// Max mean reprojection error of a DLT point (ff pixels).
+    #[arg(long)]
+    max_reproj_error: Option<f64>,
+    /// BA camera model (default: the preset's).
+    #[arg(long, value_enum)]
+    camera_model: Option<CameraModelArg>,
+    /// One camera per view instead of one shared camera.
+    #[arg(long)]
+    per_view_camera: bool,
+    /// Keep the focal length(s) fixed in the BA.
+    #[arg(long)]
+    fixed_focal: bool,
+    /// Cauchy loss scale of the BA (pixels); 0 = trivial (squared) loss.
+    #[arg(long)]
+    ba_loss_scale: Option<f64>,
+    /// Max BA iterations.
+    #[arg(long)]
+    ba_max_iterations: Option<usize>,
+    /// Skip the BA and use these cameras (safetensors with `extrinsics` [N,3,4] and
+    /// `intrinsics` [N,3,3], or `ba/out_extrinsics` / `ba/out_intrinsics`).
+    #[arg(long)]
+    cameras: Option<PathBuf>,
+    /// Drop scatter observations that round outside the image (default: clamp to the border).
+    #[arg(long)]
+    drop_outside: bool,
+    /// Reject DLT points behind an observing camera (off by default, official parity).
+    #[arg(long)]
+    cheirality: bool,
+    /// Output directory.
+    #[arg(long)]
+    out: PathBuf,
+    /// Seed of every random choice (the stage is deterministic).
+    #[arg(long, default_value_t = 42)]
+    seed: u64,
+    /// Hide the progress bars.
+    #[arg(long)]
+    no_progress: bool,
+}
+
+fn read_cameras(path: &Path, n: usize) -> Result<Cameras> {
+    let f = StFile::open(path)?;
+    let prefix = if f.has("extrinsics") { "" } else { "ba/out_" };
+    let ek = format!("{prefix}extrinsics");
+    let ik = format!("{prefix}intrinsics");
+    let e = f.f32(&ek)?;
+    let rows = match e.shape.as_slice() {
+        [m, r, 4] if *m == n && (*r == 3 || *r == 4) => *r,
+        s => bail!("{}: [{ek}] shape {s:?} is not [N={n}, 3, 4]", path.display()),
+    };
+    let k = f.f32(&ik)?;
+    f.expect_shape(&ik, &k, &[n, 3, 3])?;
+    Ok(cameras_from_flat(path, n, &e.data, rows, &k.data)?)
+}
+
+fn run(args: RunArgs) -> Result<()> {
+    let preset = match args.preset {
+        PresetArg::Benchmark => Preset::Benchmark,
+        PresetArg::Demo => Preset::Demo,
+        PresetArg::ManyViews => Preset::ManyViews,
+    };
+    let mut cfg = SfmConfig::preset(preset);
+    let t = &mut cfg.thresholds;
+    if let Some(v) = args.mintrack_per_view {
+        t.mintrack_per_view = v;
+    }
+    if let Some(v) = args.ba_score_thresh {
+        t.ba_score = v;
+    }
+    if let Some(v) = args.ba_cycle_thresh {
+        t.ba_cycle = v;
+    }
+    if let Some(v) = args.dlt_score_thresh {
+        t.dlt_score = v;
+    }
+    if let Some(v) = args.dlt_cycle_thresh {
+        t.dlt_cycle = v;
+    }
+    if let Some(v) = args.max_epipolar_error {
+        t.max_epipolar_error = v;
+    }
+    if let Some(v) = args.min_tri_angle {
+        t.min_tri_angle_deg = v;
+    }
+    if let Some(v) = args.max_reproj_error {
+        t.max_reproj_error = v;
+    }
+    if let Some(m) = args.camera_model {
+        cfg.camera_model = match m {
+            CameraModelArg::Pinhole => CameraModel::Pinhole,
+            CameraModelArg::SimplePinhole => CameraModel::SimplePinhole,
+        };
+    }
+    cfg.shared_camera = !args.per_view_camera;
+    cfg.refine_focal = !args.fixed_focal;
+    if let Some(s) = args.ba_loss_scale {
+        cfg.ba_loss = if s > 0.0 { LossFunction::Cauchy { scale: s } } else { LossFunction::Trivial };
+    }
+    if let Some(it) = args.ba_max_iterations {
+        cfg.ba_options.max_iterations = it;
+    }
+    cfg.scatter.drop_outside = args.drop_outside;
+    cfg.cheirality = args.cheirality;
+    cfg.seed = args.seed;
+    cfg.progress = !args.no_progress;
+
+    let t0 = Instant::now();
+    let spinner = if cfg.progress { ProgressBar::new_spinner() } else { ProgressBar::hidden() };
+    if let Ok(s) = ProgressStyle::with_template("{spinner} {msg} [{elapsed}]") {
+        spinner.set_style(s);
+    }
+    spinner.enable_steady_tick(std::time::Duration::from_millis(120));
+    spinner.set_message(format!("reading feed-forward outputs {}", args.ff.display()));
+    let ff = read_ff(&args.ff).with_context(|| format!("reading --ff {}", args.ff.display()))?;
+    spinner.set_message(format!("reading and converting matches {}", args.matches.display()));
+    let m = read_matches(&args.matches, ff.dims).with_context(|| format!("reading --matches {}", args.matches.display()))?;
+    spinner.finish_and_clear();
+    tracing::info!(views = ff.dims.n, h = ff.dims.h, w = ff.dims.w, matchers = ?m.names, seconds = t0.elapsed().as_secs_f64(), "inputs read");
+    let fixed = match &args.cameras {
+        Some(p) => Some(read_cameras(p, ff.dims.n).with_context(|| format!("reading --cameras {}", p.display()))?),
+        None => None,
+    };
+    let out = run_sfm_correspondences(&ff.ff, &ff.images, &m.sets, m.rank_scores.as_deref(), &cfg, fixed.as_ref()).context("running the SfM stage")?;
+    write_outputs(&args.out, &out, &ff.images, &ff.image_names, cfg.camera_model, cfg.shared_camera)
+        .with_context(|| format!("writing outputs to {}", args.out.display()))?;
+    let s = &out.summary;
+    println!(
+        "ggpt-sfm: {} views {}x{}, {} BA tracks, BA cost {:.6} -> {:.6} ({}), DLT tracks {:?}, {} pixels with a DLT point; wrote {}",
+        s.views,
+        s.width,
+        s.height,
+        s.tracks_selected,
+        s.ba.initial_cost,
+        s.ba.final_cost,
+        if s.ba.success { "ok" } else { "failed: feed-forward cameras kept" },
+        s.dlt_tracks,
+        s.points_kept,
+        args.out.display()
+    );
+    if !out.result.points_success {
+        bail!("no DLT point survived the filters (points_success = false); outputs were written to {}", args.out.display());
+    }
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")))
+        .init();
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Run(args) => run(args),
+    }
+}

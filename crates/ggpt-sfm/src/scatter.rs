@@ -1,0 +1,193 @@
+//! Scatter of the surviving DLT points back to the pixels that observe them (`sfm.md` §10).
+//!
+//! Every kept track writes its point (SfM frame) into every visible view `t` at pixel
+//! `(round(u_t), round(v_t))` (round half to even, like `torch.round`); observations rounding
+//! outside the image are clamped to the border (official) or dropped (option). Per pixel the
+//! points are averaged (f64 accumulation).
+
+use crate::dlt::{DltOutput, DltStatus};
+use crate::error::{Result, SfmError};
+use crate::matches::Correspondences;
+
+/// Scatter options.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct ScatterOptions {
+    /// Drop observations whose rounded pixel lies outside the image instead of clamping them to
+    /// the border (a later official revision; default off = clamp, as the fixture pins).
+    pub drop_outside: bool,
+}
+
+/// The scattered point map and its extras (all `[N, h, w]` in pixel order).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScatterResult {
+    /// `[N, h, w, 3]` `X_s`: mean of the points landing on each pixel; 0 where none.
+    pub points: Vec<f32>,
+    /// `[N, h, w]` `M_s`: at least one point landed.
+    pub mask: Vec<bool>,
+    /// `[N, h, w]` number of points landing on each pixel (`dlt_count`).
+    pub count: Vec<u32>,
+    /// `[N, h, w]` mean reprojection error (ff pixels) of the contributing tracks, 0 where none
+    /// (`dlt_reproj`).
+    pub reproj: Vec<f32>,
+    /// Observations written.
+    pub observations: usize,
+    /// Observations clamped onto the border.
+    pub clamped: usize,
+    /// Observations dropped (outside with `drop_outside`, or non-finite).
+    pub dropped: usize,
+}
+
+/// Rounds an f32 pixel coordinate half-to-even and maps it into `[0, size)`.
+/// Returns `(index, was_outside)`, or `None` when non-finite or (with `drop`) outside.
+#[inline]
+pub fn pixel_index(c: f32, size: usize, drop: bool) -> Option<(usize, bool)> {
+    if !c.is_finite() || size == 0 {
+        return None;
+    }
+    let r = c.round_ties_even();
+    let max = (size - 1) as f32;
+    let outside = r < 0.0 || r > max;
+    if outside && drop {
+        return None;
+    }
+    Some((r.clamp(0.0, max) as usize, outside))
+}
+
+/// Target pixel (flat `n*h*w + y*w + x`) of every observation of every kept track, in the
+/// official order: views in order, then tracks in ascending id; `None` for dropped observations.
+/// Also returns the index into `dlt.tracks` of each observation's track.
+pub fn observation_targets(corr: &Correspondences, vis: &[bool], dlt: &DltOutput, opts: &ScatterOptions) -> Result<Vec<(Option<(usize, bool)>, usize)>> {
+    corr.validate()?;
+    let n = corr.dims.n;
+    let (h, w) = (corr.dims.h, corr.dims.w);
+    let hw = h * w;
+    let nt = n * hw;
+    if vis.len() != n * nt {
+        return Err(SfmError::Shape(format!("scatter: visibility of {} entries, expected {}", vis.len(), n * nt)));
+    }
+    let kept: Vec<usize> = dlt.tracks.iter().enumerate().filter(|(_, t)| t.status == DltStatus::Kept).map(|(i, _)| i).collect();
+    let mut out = Vec::new();
+    for t in 0..n {
+        for &ti in &kept {
+            let j = dlt.tracks[ti].track;
+            if j >= nt {
+                return Err(SfmError::Shape(format!("scatter: track id {j} out of range (N*h*w = {nt})")));
+            }
+            if !vis[t * nt + j] {
+                continue;
+            }
+            let i = 2 * (t * nt + j);
+            let px = pixel_index(corr.matches[i], w, opts.drop_outside);
+            let py = pixel_index(corr.matches[i + 1], h, opts.drop_outside);
+            let target = match (px, py) {
+                (Some((x, ox)), Some((y, oy))) => Some((t * hw + y * w + x, ox || oy)),
+                _ => None,
+            };
+            out.push((target, ti));
+        }
+    }
+    Ok(out)
+}
+
+/// Scatters the kept DLT tracks (`sfm.md` §10). `vis` is the DLT visibility `[N, N hw]` used by
+/// the triangulation, `corr` the correspondences (ff pixels).
+pub fn scatter(corr: &Correspondences, vis: &[bool], dlt: &DltOutput, opts: &ScatterOptions) -> Result<ScatterResult> {
+    let targets = observation_targets(corr, vis, dlt, opts)?;
+    let px = corr.dims.pixels();
+    let mut sum = vec![0f64; 3 * px];
+    let mut rsum = vec![0f64; px];
+    let mut count = vec![0u32; px];
+    let (mut observations, mut clamped, mut dropped) = (0, 0, 0);
+    for (target, ti) in targets {
+        let Some((p, outside)) = target else {
+            dropped += 1;
+            continue;
+        };
+        let tr = &dlt.tracks[ti];
+        observations += 1;
+        if outside {
+            clamped += 1;
+        }
+        for a in 0..3 {
+            sum[3 * p + a] += tr.point[a];
+        }
+        rsum[p] += tr.reproj_mean;
+        count[p] = count[p].saturating_add(1);
+    }
+    let mut points = vec![0f32; 3 * px];
+    let mut reproj = vec![0f32; px];
+    for p in 0..px {
+        if count[p] > 0 {
+            let c = count[p] as f64;
+            for a in 0..3 {
+                points[3 * p + a] = (sum[3 * p + a] / c) as f32;
+            }
+            reproj[p] = (rsum[p] / c) as f32;
+        }
+    }
+    let mask = count.iter().map(|&c| c > 0).collect();
+    Ok(ScatterResult { points, mask, count, reproj, observations, clamped, dropped })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dlt::DltTrack;
+    use ggpt_core::Dims;
+
+    #[test]
+    fn rounding_half_to_even_and_clamp() {
+        assert_eq!(pixel_index(2.5, 10, false), Some((2, false)));
+        assert_eq!(pixel_index(3.5, 10, false), Some((4, false)));
+        assert_eq!(pixel_index(-0.5, 10, false), Some((0, false))); // -0 is inside
+        assert_eq!(pixel_index(-0.6, 10, false), Some((0, true)));
+        assert_eq!(pixel_index(9.5, 10, false), Some((9, true)));
+        assert_eq!(pixel_index(9.5, 10, true), None);
+        assert_eq!(pixel_index(f32::NAN, 10, false), None);
+    }
+
+    fn track(j: usize, p: [f64; 3], status: DltStatus) -> DltTrack {
+        DltTrack { track: j, num_views: 2, point: p, w: 1.0, reproj_mean: 0.5, max_angle_deg: 10.0, status }
+    }
+
+    #[test]
+    fn averages_and_clamps() {
+        // N = 2, h = 1, w = 3.
+        let dims = Dims { n: 2, h: 1, w: 3 };
+        let e = 12;
+        let mut corr = Correspondences { dims, matches: vec![0.0; 2 * e], scores: vec![1.0; e], cycle: vec![0.0; e] };
+        corr.apply_diagonal();
+        // track 0 (view 0, pixel 0) lands in view 1 at x = 1.5 -> 2; track 1 (view 0 pixel 1) at x = 7 -> clamped 2
+        let i0 = corr.idx(1, 0, 0);
+        corr.matches[2 * i0] = 1.5;
+        let i1 = corr.idx(1, 0, 1);
+        corr.matches[2 * i1] = 7.0;
+        let nt = 6;
+        let mut vis = vec![false; 2 * nt];
+        for j in 0..3 {
+            vis[j] = true;
+        }
+        for j in 3..6 {
+            vis[nt + j] = true;
+        }
+        vis[nt] = true;
+        vis[nt + 1] = true;
+        let dlt = DltOutput {
+            tracks: vec![
+                track(0, [1.0, 2.0, 3.0], DltStatus::Kept),
+                track(1, [3.0, 4.0, 5.0], DltStatus::Kept),
+                track(2, [9.0, 9.0, 9.0], DltStatus::RejectAngle),
+            ],
+        };
+        let r = scatter(&corr, &vis, &dlt, &ScatterOptions::default()).unwrap();
+        assert_eq!(r.count, vec![1, 1, 0, 0, 0, 2]);
+        assert_eq!(&r.points[15..18], &[2.0, 3.0, 4.0]);
+        assert_eq!(&r.points[0..3], &[1.0, 2.0, 3.0]);
+        assert_eq!(r.mask, vec![true, true, false, false, false, true]);
+        assert_eq!((r.observations, r.clamped, r.dropped), (4, 1, 0));
+        let r = scatter(&corr, &vis, &dlt, &ScatterOptions { drop_outside: true }).unwrap();
+        assert_eq!(r.count, vec![1, 1, 0, 0, 0, 1]);
+        assert_eq!(r.dropped, 1);
+        assert_eq!(r.reproj[5], 0.5);
+    }
+}

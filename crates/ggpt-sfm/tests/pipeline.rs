@@ -1,0 +1,149 @@
+//! Whole-pipeline tests: the `sfm_small` fixture end to end (recorded BA cameras injected, and
+//! with our own BA), the output files, and the bad-input behaviour.
+
+mod common;
+
+use common::synth::synth;
+use common::{fixture, max_abs_diff, open};
+use ggpt_sfm::input::{read_ff, read_matches};
+use ggpt_sfm::masks::Preset;
+use ggpt_sfm::output::write_outputs;
+use ggpt_sfm::pipeline::{SfmConfig, run_sfm, run_sfm_correspondences};
+use ggpt_sfm::st::StFile;
+
+fn fixture_config() -> SfmConfig {
+    let mut cfg = SfmConfig::preset(Preset::Benchmark);
+    cfg.thresholds.mintrack_per_view = 64;
+    cfg
+}
+
+/// Acceptance: raw inputs -> pipeline with the recorded official BA cameras -> `scatter/*`.
+#[test]
+fn fixture_end_to_end_with_recorded_cameras() {
+    let fx = open();
+    let path = fixture("inputs.safetensors");
+    let ff = read_ff(&path).unwrap();
+    let m = read_matches(&path, ff.dims).unwrap();
+    let cams = fx.ba_out_cameras();
+    let out = run_sfm_correspondences(&ff.ff, &ff.images, &m.sets, m.rank_scores.as_deref(), &fixture_config(), Some(&cams)).unwrap();
+    assert_eq!(out.selection.track_ids().iter().map(|&x| x as i64).collect::<Vec<_>>(), fx.i64("tracks/track_ids"));
+    assert_eq!(out.summary.dlt_tracks, [7782, 7782, 7595, 7415, 7415]);
+    assert_eq!(out.result.mask, fx.bool("scatter/point_masks"), "point masks");
+    let (d, i) = max_abs_diff(&out.result.points, &fx.f32("scatter/points"));
+    assert!(d <= 2e-3, "points: max |Δ| = {d} at {i}");
+    assert!(out.result.points_success && out.result.camera_success);
+
+    // output files
+    let dir = tempfile::tempdir().unwrap();
+    write_outputs(dir.path(), &out, &ff.images, &[], ggpt_sfm::ba::CameraModel::Pinhole, true).unwrap();
+    let st = StFile::open(&dir.path().join("sfm_dlt_outputs.safetensors")).unwrap();
+    assert_eq!(st.bool("point_masks").unwrap().data, fx.bool("scatter/point_masks"));
+    assert_eq!(st.f32("points").unwrap().shape, vec![4, 42, 56, 3]);
+    assert_eq!(st.f32("extrinsics").unwrap().data, fx.f32("ba/out_extrinsics"));
+    assert_eq!(st.f32("intrinsics").unwrap().data, fx.f32("ba/out_intrinsics"));
+    let model = ggpt_core::io::colmap::read_colmap(&dir.path().join("sparse/0")).unwrap();
+    assert_eq!(model.images.len(), 4);
+    assert_eq!(model.points3d.len(), 7415);
+    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["points_kept"], 7794);
+}
+
+/// End to end with our BA: cameras differ from the official ones by solver path / gauge, so masks
+/// and points are compared with a tolerance.
+#[test]
+fn fixture_end_to_end_with_our_ba() {
+    let fx = open();
+    let path = fixture("inputs.safetensors");
+    let ff = read_ff(&path).unwrap();
+    let m = read_matches(&path, ff.dims).unwrap();
+    let out = run_sfm_correspondences(&ff.ff, &ff.images, &m.sets, m.rank_scores.as_deref(), &fixture_config(), None).unwrap();
+    let s = &out.summary;
+    assert!(s.ba.success, "{}", s.ba.message);
+    assert_eq!(s.ba.points, 93);
+    assert_eq!(s.ba.observations, 273);
+    // focal close to the official refined focal (upstream: [49.5222, 49.8875])
+    let k = &out.result.cameras.intrinsics[0];
+    eprintln!("ours: fx {} fy {}; cost {} -> {}", k[(0, 0)], k[(1, 1)], s.ba.initial_cost, s.ba.final_cost);
+    assert!((k[(0, 0)] - 49.5222).abs() < 0.1 && (k[(1, 1)] - 49.8875).abs() < 0.1);
+    let want_mask = fx.bool("scatter/point_masks");
+    let diff = out.result.mask.iter().zip(&want_mask).filter(|(a, b)| a != b).count();
+    let want_pts = fx.f32("scatter/points");
+    // the two BAs fix the gauge differently: compare after a least-squares similarity
+    let pt = |v: &[f32], p: usize| nalgebra::Point3::new(v[3 * p] as f64, v[3 * p + 1] as f64, v[3 * p + 2] as f64);
+    let common: Vec<usize> = (0..want_mask.len()).filter(|&p| out.result.mask[p] && want_mask[p]).collect();
+    let src: Vec<_> = common.iter().map(|&p| pt(&out.result.points, p)).collect();
+    let tgt: Vec<_> = common.iter().map(|&p| pt(&want_pts, p)).collect();
+    let sim = ggpt_core::sim3::umeyama(&src, &tgt).unwrap();
+    eprintln!("gauge similarity: scale {}", sim.scale);
+    let mut errs: Vec<f32> = src.iter().zip(&tgt).map(|(a, b)| (sim.apply(a) - b).norm() as f32).collect();
+    errs.sort_by(f32::total_cmp);
+    let med = errs[errs.len() / 2];
+    eprintln!("our BA: {diff} mask differences of {}, median point difference {med:e}", want_mask.len());
+    assert!(diff <= want_mask.len() / 50, "{diff} mask differences");
+    assert!(med < 5e-3, "median point difference {med}");
+}
+
+#[test]
+fn synthetic_scene_recovers_geometry() {
+    let s = synth(3, 24, 32);
+    let mut cfg = SfmConfig::preset(Preset::Benchmark);
+    cfg.thresholds.mintrack_per_view = 128;
+    let out = run_sfm(&s.ff, &s.images, s.dims, std::slice::from_ref(&s.matches), &cfg).unwrap();
+    assert!(out.result.camera_success && out.result.points_success);
+    assert_eq!(out.summary.ranking, "shi-tomasi");
+    let k = out.result.cameras.intrinsics[0];
+    let f_gt = s.gt.intrinsics[0][(0, 0)];
+    eprintln!("synthetic: focal {} (gt {f_gt}), {} pixels", k[(0, 0)], out.summary.points_kept);
+    assert!(out.summary.points_kept > 500);
+    assert!(out.result.points.iter().all(|v| v.is_finite()));
+}
+
+#[test]
+fn bad_inputs_give_clear_errors_or_fallbacks() {
+    let s = synth(3, 12, 16);
+    let cfg = SfmConfig::preset(Preset::Benchmark);
+    // shape mismatch between matches and images
+    let mut wrong = s.matches.clone();
+    wrong.pred_scores.truncate(10);
+    let e = run_sfm(&s.ff, &s.images, s.dims, std::slice::from_ref(&wrong), &cfg).unwrap_err();
+    assert!(e.to_string().contains("shape mismatch"), "{e}");
+    let e = run_sfm(&s.ff, &s.images[..30], s.dims, std::slice::from_ref(&s.matches), &cfg).unwrap_err();
+    assert!(e.to_string().contains("images"), "{e}");
+    // all-zero scores
+    let mut zero = s.matches.clone();
+    zero.pred_scores.iter_mut().for_each(|v| *v = 0.0);
+    let e = run_sfm(&s.ff, &s.images, s.dims, std::slice::from_ref(&zero), &cfg).unwrap_err();
+    assert!(e.to_string().contains("all matcher scores are zero"), "{e}");
+    // NaN cameras
+    let mut ff = s.ff.clone();
+    ff.cameras.cam_from_world[1][(0, 3)] = f64::NAN;
+    let e = run_sfm(&ff, &s.images, s.dims, std::slice::from_ref(&s.matches), &cfg).unwrap_err();
+    assert!(e.to_string().contains("view 1") && e.to_string().contains("non-finite"), "{e}");
+    // one view
+    let one = synth(1, 12, 16);
+    let e = run_sfm(&one.ff, &one.images, one.dims, std::slice::from_ref(&one.matches), &cfg).unwrap_err();
+    assert!(e.to_string().contains("at least 2 views"), "{e}");
+    // a view with no valid matches: documented fallback (listed, no DLT point of its own)
+    let mut nov = s.matches.clone();
+    let hw = s.dims.hw();
+    let n = s.dims.n;
+    for t in 0..n {
+        for sv in 0..n {
+            if t != sv && (t == 2 || sv == 2) {
+                let b = (t * n + sv) * hw;
+                nov.pred_scores[b..b + hw].iter_mut().for_each(|v| *v = 0.0);
+            }
+        }
+    }
+    let out = run_sfm(&s.ff, &s.images, s.dims, std::slice::from_ref(&nov), &cfg).unwrap();
+    assert_eq!(out.summary.views_without_matches, vec![2]);
+    assert!(out.result.mask[2 * hw..3 * hw].iter().all(|&m| !m));
+    assert!(out.result.cameras.is_finite());
+    assert!(out.result.points.iter().all(|v| v.is_finite()));
+    // wrong matches file resolution
+    let fx_path = fixture("inputs.safetensors");
+    let e = read_matches(&fx_path, ggpt_core::Dims { n: 4, h: 42, w: 57 }).unwrap_err();
+    assert!(e.to_string().contains("sp_scores"), "{e}");
+    let e = read_matches(&fx_path, ggpt_core::Dims { n: 3, h: 42, w: 56 }).unwrap_err();
+    assert!(e.to_string().contains("N=3"), "{e}");
+}
