@@ -7,6 +7,8 @@ use nalgebra::{Matrix3, Matrix3x4, Rotation3, Vector3};
 
 pub struct Synth {
     pub dims: Dims,
+    /// `[N hw]` GT world point of every pixel.
+    pub gt_points: Vec<[f64; 3]>,
     pub gt: Cameras,
     pub ff: FeedForward,
     pub images: Vec<f32>,
@@ -14,13 +16,22 @@ pub struct Synth {
 }
 
 fn plane_hit(c: &Vector3<f64>, d: &Vector3<f64>) -> Option<Vector3<f64>> {
-    // plane z = 5 + 0.2 x  (world frame)
+    // plane z = 5 + 0.2 x and a sphere of radius 0.9 at (0.6, 0.1, 4.0) (world frame): nearest hit
     let denom = d.z - 0.2 * d.x;
-    if denom.abs() < 1e-9 {
-        return None;
+    let mut best = if denom.abs() < 1e-9 { f64::INFINITY } else { (5.0 + 0.2 * c.x - c.z) / denom };
+    if best <= 0.0 {
+        best = f64::INFINITY;
     }
-    let s = (5.0 + 0.2 * c.x - c.z) / denom;
-    if s <= 0.0 { None } else { Some(c + d * s) }
+    let oc = c - Vector3::new(0.6, 0.1, 4.0);
+    let (a, b, cc) = (d.dot(d), 2.0 * oc.dot(d), oc.dot(&oc) - 0.81);
+    let disc = b * b - 4.0 * a * cc;
+    if disc >= 0.0 {
+        let s = (-b - disc.sqrt()) / (2.0 * a);
+        if s > 0.0 && s < best {
+            best = s;
+        }
+    }
+    if best.is_finite() { Some(c + d * best) } else { None }
 }
 
 pub fn synth(n: usize, h: usize, w: usize) -> Synth {
@@ -64,8 +75,8 @@ pub fn synth(n: usize, h: usize, w: usize) -> Synth {
                 if let Some(q) = q {
                     // deterministic tiny noise
                     let e = ((kk * 7 + s * 3 + t) % 11) as f64 / 11.0 - 0.5;
-                    pm[2 * i] = (q.x + 0.05 * e) as f32;
-                    pm[2 * i + 1] = (q.y - 0.04 * e) as f32;
+                    pm[2 * i] = (q.x + 0.004 * e) as f32;
+                    pm[2 * i + 1] = (q.y - 0.003 * e) as f32;
                     let inside = q.x > -0.5 && q.y > -0.5 && q.x < w as f64 - 0.5 && q.y < h as f64 - 0.5;
                     ps[i] = if inside { 0.9 } else { 0.0 };
                 } else {
@@ -97,5 +108,5 @@ pub fn synth(n: usize, h: usize, w: usize) -> Synth {
         })
         .collect();
     let matches = MatchSet { matcher: "synthetic".into(), pred_matches: pm, pred_scores: ps, pred_cycle_error: None, rank_scores: None };
-    Synth { dims, gt, ff, images, matches }
+    Synth { dims, gt_points: pts, gt, ff, images, matches }
 }
