@@ -252,3 +252,77 @@ fn put_pair(corr: &mut Correspondences, t: usize, s: usize, m: &[f32], score: &[
     corr.matches[2 * b..2 * (b + hw)].copy_from_slice(m);
     corr.scores[b..b + hw].copy_from_slice(score);
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::st::{OutTensor, serialize};
+
+    fn write(dir: &Path, name: &str, t: Vec<OutTensor>) -> std::path::PathBuf {
+        let p = dir.join(name);
+        std::fs::write(&p, serialize(&t, None).unwrap()).unwrap();
+        p
+    }
+
+    fn ff_tensors(n: usize, h: usize, w: usize, img_h: usize) -> Vec<OutTensor> {
+        let px = n * h * w;
+        let mut ext = Vec::new();
+        let mut k = Vec::new();
+        for _ in 0..n {
+            ext.extend([1.0f32, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+            k.extend([10.0f32, 0.0, (w as f32 - 1.0) / 2.0, 0.0, 10.0, (h as f32 - 1.0) / 2.0, 0.0, 0.0, 1.0]);
+        }
+        vec![
+            OutTensor::f32("ff/points", vec![n, h, w, 3], &vec![1.0; 3 * px]),
+            OutTensor::f32("ff/images_ff", vec![n, img_h, w, 3], &vec![0.5; 3 * n * img_h * w]),
+            OutTensor::f32("ff/points_conf", vec![n, h, w], &vec![1.0; px]),
+            OutTensor::f32("ff/extrinsics", vec![n, 3, 4], &ext),
+            OutTensor::f32("ff/intrinsics", vec![n, 3, 3], &k),
+        ]
+    }
+
+    #[test]
+    fn ff_safetensors_ok_and_shape_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = write(dir.path(), "ok.safetensors", ff_tensors(2, 3, 4, 3));
+        let ff = read_ff(&p).unwrap();
+        assert_eq!(ff.dims, Dims { n: 2, h: 3, w: 4 });
+        assert_eq!(ff.ff.cameras.intrinsics[1][(0, 2)], 1.5);
+        let p = write(dir.path(), "bad.safetensors", ff_tensors(2, 3, 4, 5));
+        let e = read_ff(&p).unwrap_err().to_string();
+        assert!(e.contains("bad.safetensors") && e.contains("ff/images_ff"), "{e}");
+    }
+
+    #[test]
+    fn raw_matches_shape_errors_and_ufm_conversion() {
+        let dir = tempfile::tempdir().unwrap();
+        let (n, h, w) = (2, 3, 4);
+        let hw = h * w;
+        // UFM-style flow +1 px in x everywhere, covisibility 0.9
+        let mut flow = vec![0f32; n * n * 2 * hw];
+        for p in 0..n * n {
+            flow[p * 2 * hw..p * 2 * hw + hw].iter_mut().for_each(|v| *v = 1.0);
+        }
+        let p = write(
+            dir.path(),
+            "m.safetensors",
+            vec![
+                OutTensor::f32("match/m0_flow", vec![n, n, 2, h, w], &flow),
+                OutTensor::f32("match/m0_covisibility", vec![n, n, h, w], &vec![0.9; n * n * hw]),
+            ],
+        );
+        let m = read_matches(&p, Dims { n, h, w }).unwrap();
+        assert_eq!(m.sets.len(), 1);
+        let c = &m.sets[0];
+        let i = c.idx(1, 0, 0);
+        assert_eq!((c.matches[2 * i], c.matches[2 * i + 1], c.scores[i]), (1.0, 0.0, 0.9));
+        let j = c.idx(1, 0, 3); // x = 3 -> 4 leaves the image: score 0
+        assert_eq!(c.scores[j], 0.0);
+        assert!(m.rank_scores.is_none());
+        let e = read_matches(&p, Dims { n: 3, h, w }).unwrap_err().to_string();
+        assert!(e.contains("m0_flow") && e.contains("N=3"), "{e}");
+        let empty = write(dir.path(), "e.safetensors", vec![OutTensor::f32("x", vec![1], &[0.0])]);
+        let e = read_matches(&empty, Dims { n, h, w }).unwrap_err().to_string();
+        assert!(e.contains("no matcher output"), "{e}");
+    }
+}

@@ -290,6 +290,35 @@ mod tests {
         assert!((s[4 * w + 3] - s[3 * w + 4]).abs() < 1e-5);
     }
 
+    /// `g = 0.01 x y`: interior Sobel gradients are `gx = 0.08 y`, `gy = 0.08 x`; the score is
+    /// the smaller eigenvalue of their 5x5 structure tensor.
+    #[test]
+    fn shi_tomasi_exact_value_on_bilinear_image() {
+        let (h, w) = (11, 12);
+        let mut img = vec![0f32; 3 * h * w];
+        for y in 0..h {
+            for x in 0..w {
+                let g = 0.01 * (x * y) as f32;
+                img[3 * (y * w + x)..3 * (y * w + x) + 3].copy_from_slice(&[g, g, g]);
+            }
+        }
+        let s = shi_tomasi(&img, 1, h, w).unwrap();
+        for (x0, y0) in [(4usize, 5usize), (6, 3), (8, 7)] {
+            let (mut a, mut b, mut c) = (0f64, 0f64, 0f64);
+            for y in y0 - 2..=y0 + 2 {
+                for x in x0 - 2..=x0 + 2 {
+                    let (gx, gy) = (0.08 * y as f64, 0.08 * x as f64);
+                    a += gx * gx;
+                    b += gx * gy;
+                    c += gy * gy;
+                }
+            }
+            let want = (a + c) / 2.0 - (((a - c) / 2.0).powi(2) + b * b).sqrt();
+            let got = s[y0 * w + x0] as f64;
+            assert!((got - want).abs() <= 1e-4 * want.abs().max(1e-3), "({x0},{y0}): {got} vs {want}");
+        }
+    }
+
     #[test]
     fn ba_tracks_layout_and_exclusion() {
         let dims = Dims { n: 2, h: 1, w: 2 };
