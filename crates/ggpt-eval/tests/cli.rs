@@ -1,0 +1,114 @@
+//! End-to-end tests of the `ggpt-eval` binary on a small synthetic scene.
+
+use std::path::Path;
+use std::process::Command;
+
+use ggpt_core::io::npy::{NpyArray, NpyData, write_npy};
+use ggpt_core::io::scene_dir::read_scene;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_ggpt-eval"))
+}
+
+fn run_ok(cmd: &mut Command) -> String {
+    let out = cmd.output().expect("running ggpt-eval");
+    assert!(
+        out.status.success(),
+        "ggpt-eval failed: {}\nstdout:\n{}\nstderr:\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn read_json(path: &Path) -> serde_json::Value {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    serde_json::from_slice(&bytes).unwrap()
+}
+
+fn f(v: &serde_json::Value, path: &[&str]) -> f64 {
+    let mut x = v;
+    for k in path {
+        x = &x[*k];
+    }
+    x.as_f64().unwrap_or_else(|| panic!("{path:?} missing in {v}"))
+}
+
+#[test]
+fn demo_and_scene_evaluation() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("demo");
+    let stdout = run_ok(bin().args(["demo", "--views", "3", "--width", "112", "--height", "84", "--seed", "7", "--out"]).arg(&out));
+    assert!(stdout.contains("AUC@5") && stdout.contains("eval_ff.json"), "{stdout}");
+    let scene_dir = out.join("scene");
+
+    // Demo reports: ff clearly imperfect, GT perfect.
+    let ff = read_json(&out.join("eval_ff.json"));
+    let gt = read_json(&out.join("eval_gt.json"));
+    for key in ["auc_1", "auc_3", "auc_5", "auc_10"] {
+        assert_eq!(f(&gt, &["points", key]), 100.0, "gt {key}");
+        assert_eq!(f(&gt, &["cameras", key]), 100.0, "gt cameras {key}");
+    }
+    assert!(f(&ff, &["points", "auc_5"]) < 90.0 && f(&ff, &["points", "auc_10"]) < 95.0, "{ff}");
+    assert!(f(&ff, &["points", "auc_5"]) > 0.0);
+    assert_eq!(f(&gt, &["depth", "delta_1_01"]), 100.0);
+
+    // Evaluate the written scene through the CLI.
+    let json = tmp.path().join("ff.json");
+    let stdout = run_ok(bin().arg("--scene").arg(&scene_dir).args(["--seed", "7", "--pred", "ff", "--json"]).arg(&json));
+    assert!(stdout.contains("AUC@10"), "{stdout}");
+    let r = read_json(&json);
+    assert_eq!(r["prediction"], "ff");
+    assert_eq!(r["camera_source"], "ff");
+    // Same seed, same scene: identical to the demo's report.
+    assert_eq!(r["points"], ff["points"]);
+
+    let json_gt = tmp.path().join("gt.json");
+    run_ok(bin().arg("--scene").arg(&scene_dir).args(["--pred", "gt", "--cameras", "gt", "--json"]).arg(&json_gt));
+    let r = read_json(&json_gt);
+    assert_eq!(f(&r, &["points", "auc_10"]), 100.0);
+    assert!(f(&r, &["points", "median_cm"]) < 1e-6);
+
+    // A .npy prediction: GT points under a similarity (scale 2, shift) evaluates as perfect.
+    let scene = read_scene(&scene_dir).unwrap();
+    let gt_pts = &scene.gt.as_ref().unwrap().points;
+    let d = scene.dims;
+    let pred: Vec<f32> = gt_pts.iter().map(|v| 2.0 * v + 1.0).collect();
+    let npy = tmp.path().join("pred.npy");
+    write_npy(&npy, &NpyArray::new(vec![d.n, d.h, d.w, 3], NpyData::F32(pred)).unwrap()).unwrap();
+    let json_npy = tmp.path().join("npy.json");
+    run_ok(bin().arg("--scene").arg(&scene_dir).arg("--pred").arg(&npy).args(["--cameras", "none", "--json"]).arg(&json_npy));
+    let r = read_json(&json_npy);
+    assert!(f(&r, &["points", "auc_1"]) > 99.9, "{r}");
+    assert!(r["cameras"].is_null());
+
+    // Wrong shape: clear error, non-zero exit, no report.
+    let bad = tmp.path().join("bad.npy");
+    write_npy(&bad, &NpyArray::new(vec![2, 3], NpyData::F32(vec![0.0; 6])).unwrap()).unwrap();
+    let json_bad = tmp.path().join("bad.json");
+    let o = bin().arg("--scene").arg(&scene_dir).arg("--pred").arg(&bad).arg("--json").arg(&json_bad).output().unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("bad.npy") && err.contains("shape"), "{err}");
+    assert!(!json_bad.exists());
+}
+
+#[test]
+fn missing_scene_is_an_error() {
+    let o = bin().output().unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--scene"));
+    let o = bin().args(["--scene", "/nonexistent/dir"]).output().unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("/nonexistent/dir"));
+}
+
+#[test]
+fn help_documents_the_flags() {
+    let o = bin().arg("--help").output().unwrap();
+    let s = String::from_utf8_lossy(&o.stdout);
+    for flag in ["--scene", "--pred", "--cameras", "--json", "--seed", "demo"] {
+        assert!(s.contains(flag), "--help lacks {flag}:\n{s}");
+    }
+}
