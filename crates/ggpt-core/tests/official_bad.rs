@@ -173,3 +173,40 @@ fn mismatched_dims_across_official_files() {
     let e = read_scene(&seq).unwrap_err().to_string();
     assert!(e.contains("gt.bin") && e.contains("[points]") && e.contains("N=4 h=42 w=56") && e.contains("N=2 h=3 w=4"), "{e}");
 }
+
+#[test]
+fn corrupt_pickle_stream() {
+    use std::io::Write;
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("ff_outputs.bin");
+    for pkl in [&b"\x80\x02}q\x00(X\x05\x00\x00\x00pointsq"[..], b"\x80\x02\xff\xfe garbage opcode", b""] {
+        let mut zw = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+        let opts = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+        zw.start_file("ff_outputs/data.pkl", opts).unwrap();
+        zw.write_all(pkl).unwrap();
+        zw.start_file("ff_outputs/version", opts).unwrap();
+        zw.write_all(b"3\n").unwrap();
+        std::fs::write(&p, zw.finish().unwrap().into_inner()).unwrap();
+        let e = read_ff_outputs_bin(&p).unwrap_err().to_string();
+        assert!(e.contains("ff_outputs.bin") && e.contains("torch pickle"), "{e}");
+    }
+    // A valid pickle whose storage entry is missing from the archive.
+    write_torch(&p, &ff_entries(None));
+    let bytes = std::fs::read(&p).unwrap();
+    let mut zr = zip::ZipArchive::new(std::io::Cursor::new(bytes)).unwrap();
+    let mut zw = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    for i in 0..zr.len() {
+        let mut f = zr.by_index(i).unwrap();
+        let name = f.name().unwrap().into_owned();
+        if name == "ff_outputs/data/3" {
+            continue;
+        }
+        let mut buf = Vec::new();
+        std::io::Read::read_to_end(&mut f, &mut buf).unwrap();
+        zw.start_file(name, zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored)).unwrap();
+        zw.write_all(&buf).unwrap();
+    }
+    std::fs::write(&p, zw.finish().unwrap().into_inner()).unwrap();
+    let e = read_ff_outputs_bin(&p).unwrap_err().to_string();
+    assert!(e.contains("ff_outputs.bin"), "{e}");
+}
