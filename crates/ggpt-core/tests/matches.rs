@@ -54,7 +54,7 @@ fn normalized_edge_conversion() {
     let p = dir.path().join("roma.safetensors");
     // h = 2, w = 4: u = -1 -> x = -0.5 (left edge), u = 1 -> x = 3.5 (right edge), 0 -> 1.5.
     let mut m = vec![0.0f32; 2 * 2 * 8 * 2];
-    let i = (2 + 0) * 8; // [t=1, s=0, k=0]
+    let i = 2 * 8; // [t=1, s=0, k=0] = (t * N + s) * hw
     m[2 * i..2 * i + 2].copy_from_slice(&[-1.0, 1.0]);
     m[2 * (i + 1)..2 * (i + 1) + 2].copy_from_slice(&[0.0, 0.0]);
     write_raw(&p, &m, 2, 8, &[("height", "2"), ("width", "4"), ("coords", "normalized-edge"), ("matcher", "romav2-base")]);

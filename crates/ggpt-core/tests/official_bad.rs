@@ -109,7 +109,7 @@ fn wrong_dtype() {
 #[test]
 fn wrong_shape() {
     let dir = tempfile::tempdir().unwrap();
-    let e = err_ff(dir.path(), ("points_conf", f32_tensor(&vec![1.0; N * H * (W + 1)], &[N, H, W + 1])));
+    let e = err_ff(dir.path(), ("points_conf", f32_tensor(&[1.0; N * H * (W + 1)], &[N, H, W + 1])));
     assert!(e.contains("ff_outputs.bin") && e.contains("[points_conf]") && e.contains("shape"), "{e}");
     let e = err_ff(dir.path(), ("extrinsics", f32_tensor(&[0.0; 2 * 9], &[2, 3, 3])));
     assert!(e.contains("[extrinsics]") && e.contains("shape"), "{e}");
@@ -157,7 +157,7 @@ fn missing_python_bool_and_bad_mask() {
     let r = read_sfm_dlt_outputs_bin(&p).unwrap();
     assert!(r.camera_success && !r.points_success);
     assert_eq!(r.point_masks, sfm.mask);
-    entries[4] = ("point_masks", f32_tensor(&vec![0.0; N * H * W], &[N, H, W]));
+    entries[4] = ("point_masks", f32_tensor(&[0.0; N * H * W], &[N, H, W]));
     write_torch(&p, &entries);
     let e = read_sfm_dlt_outputs_bin(&p).unwrap_err().to_string();
     assert!(e.contains("[point_masks]") && e.contains("dtype"), "{e}");
