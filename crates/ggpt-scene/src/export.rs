@@ -187,7 +187,7 @@ fn colors(images: &[f32], pixels: &[u32]) -> Vec<[u8; 3]> {
 
 /// Depth `z` of every refined point in its own view's camera (`cam_from_world_sfm`), `[P]`.
 pub fn depth_map(points: &[f32], cameras: &Cameras, hw: usize) -> Result<Vec<f32>, SceneError> {
-    if hw == 0 || points.len() % 3 != 0 || (points.len() / 3) % hw != 0 || points.len() / 3 / hw != cameras.len() {
+    if hw == 0 || points.len() != 3 * hw * cameras.len() {
         return Err(SceneError::Invalid(format!("depth: {} point values for {} cameras of {hw} pixels", points.len(), cameras.len())));
     }
     Ok(points
@@ -404,5 +404,68 @@ mod tests {
         let (t, keep) = select_points(&conf, 0.5, 100, 1).unwrap();
         assert_eq!(t, 1.5);
         assert_eq!(keep, vec![5, 6, 7, 8, 9]);
+    }
+
+    #[test]
+    fn export_scene_writes_readable_files() {
+        use crate::driver::tests::{MockRefiner, fixture_opts, fixture_scene};
+        use ggpt_core::io::{colmap::read_colmap, npy::read_npy, npy::read_npz, ply::read_ply};
+        let (scene, sfm) = fixture_scene();
+        let mut m = MockRefiner { offset_per_chunk: 0.0, calls: vec![], seen: vec![] };
+        let refined = crate::driver::refine_scene(&scene, &sfm, &mut m, &fixture_opts()).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let colmap = ColmapExportOptions { resolution: Some((84, 112)), max_points: 50, ..ColmapExportOptions::default() };
+        let opts = ExportOptions { max_points: 2000, colmap: Some(colmap), ..ExportOptions::default() };
+        let cfg = serde_json::json!({"chunking": fixture_opts()});
+        let meta = serde_json::json!({"seed": 42});
+        let sum = export_scene(dir.path(), &scene, &sfm, &refined, &opts, &cfg, &meta).unwrap();
+        let (tau, keep) = select_points(&refined.conf, 0.2, 2000, 42).unwrap();
+        assert_eq!((sum.threshold, sum.ply_points), (tau, keep.len()));
+        assert_eq!(keep.len(), 2000); // more than 2000 pass the filter: subsampled
+        let ply = read_ply(&dir.path().join("ggpt_points.ply")).unwrap();
+        assert_eq!(ply.points.len(), 2000);
+        let p0 = keep[0] as usize;
+        assert_eq!(ply.points[0], [refined.points[3 * p0], refined.points[3 * p0 + 1], refined.points[3 * p0 + 2]]);
+        assert_eq!(ply.colors[0], [0, 1, 2].map(|a| color_u8(scene.images[3 * p0 + a])));
+        assert!(ply.confidence.as_ref().unwrap().iter().all(|&c| c >= tau));
+        let ffp = read_ply(&dir.path().join("ff_points.ply")).unwrap();
+        let ff = scene.ff.as_ref().unwrap();
+        assert_eq!(ffp.points[0], [ff.points[3 * p0], ff.points[3 * p0 + 1], ff.points[3 * p0 + 2]]);
+        let sp = read_ply(&dir.path().join("sfm_points.ply")).unwrap();
+        assert_eq!(sp.points.len(), 2000.min(sfm.mask.iter().filter(|&&b| b).count()));
+        assert!(sp.confidence.is_none());
+        let pts = read_npy(&dir.path().join("points.npy")).unwrap();
+        assert_eq!(pts.shape, vec![4, 42, 56, 3]);
+        assert_eq!(pts.to_f32().unwrap(), refined.points);
+        let depth = read_npy(&dir.path().join("depth.npy")).unwrap().to_f32().unwrap();
+        // Depth = z of the refined point in its own SfM camera.
+        let c = &sfm.cameras.cam_from_world[0];
+        let x = &refined.points[0..3];
+        let z = c[(2, 0)] * f64::from(x[0]) + c[(2, 1)] * f64::from(x[1]) + c[(2, 2)] * f64::from(x[2]) + c[(2, 3)];
+        assert!((f64::from(depth[0]) - z).abs() < 1e-5);
+        let npz = read_npz(&dir.path().join("scene.npz")).unwrap();
+        for k in ["points", "confidence", "covered", "depth", "cam_from_world", "K", "images_ff"] {
+            assert!(npz.contains_key(k), "scene.npz lacks {k}");
+        }
+        assert_eq!(npz["K"].shape, vec![4, 3, 3]);
+        let model = read_colmap(&dir.path().join("sparse/0")).unwrap();
+        assert_eq!(model.cameras.len(), 1); // shared camera
+        assert_eq!(model.cameras[0].width, 112);
+        let k = &sfm.cameras.intrinsics[0];
+        assert!((model.cameras[0].params[0] - k[(0, 0)] * 2.0).abs() < 1e-9);
+        assert_eq!(model.cameras[0].params[2], 56.0); // cx_colmap = W / 2
+        assert_eq!(model.images.len(), 4);
+        assert_eq!(model.points3d.len(), 50);
+        let obs: usize = model.images.iter().map(|i| i.points2d.len()).sum();
+        assert_eq!(obs, 50);
+        for p in &model.points3d {
+            let (img, idx) = p.track[0];
+            let im = model.images.iter().find(|i| i.id == img).unwrap();
+            assert_eq!(im.points2d[idx as usize].point3d_id, Some(p.id));
+        }
+        let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("meta.json")).unwrap()).unwrap();
+        assert_eq!(meta["seed"], 42);
+        assert_eq!(meta["export"]["ply_points"], 2000);
+        assert!(dir.path().join("config.json").is_file());
     }
 }

@@ -98,15 +98,15 @@ impl FusionAccumulator {
         }
         for ((&p, x), &c) in pixels.iter().zip(points).zip(conf) {
             let p = p as usize;
-            for a in 0..3 {
-                self.sum[3 * p + a] += f64::from(x[a]);
+            for (s, &v) in self.sum[3 * p..3 * p + 3].iter_mut().zip(x) {
+                *s += f64::from(v);
             }
             self.conf_sum[p] += f64::from(c);
             self.count[p] += 1;
             if self.mode == FusionMode::ConfidenceWeighted {
                 let w = f64::from(c.max(0.0));
-                for a in 0..3 {
-                    self.weighted_sum[3 * p + a] += w * f64::from(x[a]);
+                for (s, &v) in self.weighted_sum[3 * p..3 * p + 3].iter_mut().zip(x) {
+                    *s += w * f64::from(v);
                 }
                 self.weight[p] += w;
             }
