@@ -22,6 +22,7 @@ use crate::fusion::{FusionAccumulator, FusionMode};
 use crate::prealign::{DEFAULT_ALIGN_MAX_ERROR, prealign_ff};
 use crate::radius::{RadiusRule, SceneRadius, scene_radius};
 use crate::record::{ChunkRecord, RecordSources, unnormalise};
+use crate::roi::RegionOfInterest;
 
 /// Default token budget of one network forward ([project]): one full 400k-pixel chunk plus its
 /// DLT tokens fits.
@@ -65,11 +66,11 @@ pub struct RefineOptions {
     pub fusion: FusionMode,
     /// With no DLT point, return the feed-forward points (conf 0) instead of failing.
     pub allow_unrefined: bool,
-    /// Optional region-of-interest mask `F` (`[N, h, w]`, evaluation option, `pipeline.md` §10.5):
-    /// restricts the dense points that may enter chunks and the DLT points used after the
-    /// alignment (`M_s ∧ F`), and switches the radius to the pooled rule over `F`.
+    /// Optional region of interest (evaluation option, `pipeline.md` §10.5, see [`crate::roi`]):
+    /// restricts the dense points that may enter chunks (`F`) and the DLT points used after the
+    /// alignment, and switches the radius to the pooled rule over `F`.
     #[serde(skip)]
-    pub roi: Option<Vec<bool>>,
+    pub roi: Option<RegionOfInterest>,
 }
 
 impl Default for RefineOptions {
@@ -213,7 +214,7 @@ pub fn refine_scene_with_progress(
     check_len("sfm.mask", sfm.mask.len(), px)?;
     check_cameras("feed-forward", &ff.cameras, dims.n)?;
     check_cameras("SfM", &sfm.cameras, dims.n)?;
-    if let Some(f) = &opts.roi {
+    if let Some(RegionOfInterest::Mask(f)) = &opts.roi {
         check_len("region-of-interest mask", f.len(), px)?;
     }
     // Never propagate NaN into the network.
@@ -273,12 +274,15 @@ pub fn refine_scene_with_progress(
     let aligned = pre.aligned;
     check_finite("aligned feed-forward points", &aligned)?;
 
-    // Region of interest restricts the DLT points used from here on.
-    let roi = opts.roi.as_deref();
-    let dlt_mask: Vec<bool> = match roi {
-        Some(f) => sfm.mask.iter().zip(f).map(|(&m, &k)| m && k).collect(),
-        None => sfm.mask.clone(),
+    // Region of interest restricts the dense points (F) and the DLT points used from here on.
+    let (roi_dense, dlt_mask) = match &opts.roi {
+        Some(r) => {
+            let m = r.masks(&aligned, &sfm.points, &sfm.mask)?;
+            (Some(m.dense), m.dlt_mask)
+        }
+        None => (None, sfm.mask.clone()),
     };
+    let roi = roi_dense.as_deref();
 
     // §4 radius, §5 chunks.
     let radius = scene_radius(&aligned, dims, opts.radius_rule, roi)?;
@@ -560,11 +564,25 @@ pub(crate) mod tests {
         // Keep only views 0 and 1.
         let hw = scene.dims.hw();
         let roi: Vec<bool> = (0..scene.dims.pixels()).map(|p| p < 2 * hw).collect();
-        let opts = RefineOptions { roi: Some(roi.clone()), ..fixture_opts() };
+        let opts = RefineOptions { roi: Some(RegionOfInterest::Mask(roi.clone())), ..fixture_opts() };
         let mut m = MockRefiner { offset_per_chunk: 0.0, calls: vec![], seen: vec![] };
         let out = refine_scene(&scene, &sfm, &mut m, &opts).unwrap();
         assert_eq!(out.radius.unwrap().rule, RadiusRule::Pooled);
         assert!(out.covered.iter().zip(&roi).all(|(c, r)| !*c || *r));
         assert!(out.covered.iter().any(|&c| c));
+        // A box around part of the scene: covered dense pixels lie in the box or entered
+        // through an in-box DLT point.
+        let (lo, hi) = ([-0.2f32, -0.5, 0.0], [0.3f32, 0.5, 3.0]);
+        let opts = RefineOptions { roi: Some(RegionOfInterest::Box { min: lo, max: hi }), ..fixture_opts() };
+        let out = refine_scene(&scene, &sfm, &mut m, &opts).unwrap();
+        let inb = |x: &[f32]| (0..3).all(|a| lo[a] <= x[a] && x[a] <= hi[a]);
+        let mut n = 0;
+        for p in 0..scene.dims.pixels() {
+            if out.covered[p] {
+                n += 1;
+                assert!(inb(&out.aligned_ff[3 * p..3 * p + 3]) || (sfm.mask[p] && inb(&sfm.points[3 * p..3 * p + 3])), "pixel {p}");
+            }
+        }
+        assert!(n > 0 && n < scene.dims.pixels());
     }
 }

@@ -5,6 +5,7 @@
 //! * [`radius`]: the scene radius `R` (§4).
 //! * [`chunker`]: the random overlapping-cube chunk sampler (§5), with an injectable draw source.
 //! * [`record`]: per-chunk records normalised to the chunk frame (§6).
+//! * [`roi`]: evaluation regions of interest (T&T box, 4D-DRESS mask).
 //! * [`fusion`]: streaming per-pixel fusion of refined chunks (§8).
 //! * [`driver`]: [`driver::refine_scene`], the whole refinement against a [`driver::ChunkRefiner`]
 //!   (the network is supplied by the caller), batched by a token budget (§7).
@@ -21,6 +22,7 @@ pub mod fusion;
 pub mod prealign;
 pub mod radius;
 pub mod record;
+pub mod roi;
 
 #[cfg(test)]
 pub(crate) mod test_util;
