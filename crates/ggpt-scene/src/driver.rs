@@ -162,6 +162,35 @@ pub struct RefinedScene {
     pub warnings: Vec<String>,
 }
 
+impl RefinedScene {
+    /// Counts and settings for `meta.json` (`pipeline.md` §9.4): views, resolution, DLT pixels,
+    /// chunks, attempts, forwards, tokens, covered pixels, seeds, radius, alignment, warnings.
+    pub fn summary_json(&self) -> serde_json::Value {
+        let covered = self.covered.iter().filter(|&&c| c).count();
+        serde_json::json!({
+            "views": self.dims.n,
+            "height": self.dims.h,
+            "width": self.dims.w,
+            "pixels": self.dims.pixels(),
+            "dlt_pixels": self.dlt_pixels,
+            "chunks": self.chunks.len(),
+            "attempts": self.attempts,
+            "uncovered_dlt_pixels": self.uncovered_dlt,
+            "stop": self.stop,
+            "forwards": self.forwards,
+            "tokens": self.total_tokens,
+            "dense_tokens": self.chunks.iter().map(|c| c.num_pixels).sum::<usize>(),
+            "covered_pixels": covered,
+            "chunk_seed": self.chunk_seed,
+            "radius": self.radius,
+            "alignment": self.alignment,
+            "unrefined": self.unrefined,
+            "no_chunk_fallback": self.no_chunk_fallback,
+            "warnings": self.warnings,
+        })
+    }
+}
+
 /// Progress report: `done` of `total` chunks refined.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Progress {
@@ -308,13 +337,22 @@ pub fn refine_scene_with_progress(
     let (mut forwards, mut total_tokens) = (0usize, 0usize);
     let total = set.chunks.len();
     let mut next = 0usize;
+    // A record built but left for the next forward (it did not fit the token budget).
+    let mut pending: Option<ChunkRecord> = None;
     while next < total {
         let mut batch: Vec<ChunkRecord> = Vec::new();
         let mut tokens = 0usize;
-        while let Some(chunk) = set.chunks.get(next) {
-            let rec = ChunkRecord::build(chunk, &src)?;
+        loop {
+            let rec = match pending.take() {
+                Some(r) => r,
+                None => match set.chunks.get(next) {
+                    Some(chunk) => ChunkRecord::build(chunk, &src)?,
+                    None => break,
+                },
+            };
             let t = rec.num_tokens();
             if !batch.is_empty() && tokens + t > opts.max_tokens_per_forward {
+                pending = Some(rec);
                 break;
             }
             tokens += t;
@@ -504,6 +542,11 @@ pub(crate) mod tests {
         assert_eq!(a.conf, b.conf);
         assert_eq!(one.seen, many.seen);
         assert_eq!(b.forwards, many.calls.len());
+        let j = b.summary_json();
+        assert_eq!(j["chunks"], b.chunks.len());
+        assert_eq!(j["forwards"], many.calls.len());
+        assert_eq!(j["chunk_seed"], 843347836u64);
+        assert_eq!(j["alignment"]["method"]["method"], "robust");
         assert_eq!(reports.last().map(|p| p.done), Some(b.chunks.len()));
         assert!(reports.windows(2).all(|w| w[0].done < w[1].done));
     }
