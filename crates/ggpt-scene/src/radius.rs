@@ -10,7 +10,8 @@
 //!
 //! With `N = 1` the across-view std is undefined (the official code gets NaN and refines
 //! nothing); the project then uses the pooled rule (**[project]**).
-//! Statistics are accumulated in `f64`.
+//! Statistics are accumulated in `f64` and rounded to `f32` where the official torch code holds
+//! `f32` tensors (per-element std, their mean), which reproduces the official `R` bit-exactly.
 
 use ggpt_core::Dims;
 
@@ -63,7 +64,9 @@ pub fn scene_radius(points: &[f32], dims: Dims, rule: RadiusRule, roi: Option<&[
     Ok(SceneRadius { radius, rule: effective })
 }
 
-/// `3 · mean_{y,x,a} std_n` (unbiased, `N ≥ 2`).
+/// `3 · mean_{y,x,a} std_n` (unbiased, `N ≥ 2`), emulating the official torch arithmetic on an
+/// `f32` tensor: each std accumulated in `f64` and stored as `f32`, their mean rounded to `f32`
+/// (accumulated here in `f64`), then `× 3` in `f64`.
 fn across_views(points: &[f32], dims: Dims) -> f64 {
     let hw3 = 3 * dims.hw();
     let n = dims.n as f64;
@@ -72,12 +75,12 @@ fn across_views(points: &[f32], dims: Dims) -> f64 {
         let vals = (0..dims.n).filter_map(|v| points.get(v * hw3 + i).map(|&x| f64::from(x)));
         let mean = vals.clone().sum::<f64>() / n;
         let ss: f64 = vals.map(|x| (x - mean) * (x - mean)).sum();
-        total += (ss / (n - 1.0)).sqrt();
+        total += f64::from((ss / (n - 1.0)).sqrt() as f32);
     }
-    RADIUS_STD_FACTOR * total / hw3 as f64
+    RADIUS_STD_FACTOR * f64::from((total / hw3 as f64) as f32)
 }
 
-/// `3 · mean_a std_p` over the (masked) points, unbiased.
+/// `3 · mean_a std_p` over the (masked) points, unbiased (torch arithmetic, see below).
 fn pooled(points: &[f32], roi: Option<&[bool]>) -> Result<f64, SceneError> {
     let keep = |p: usize| roi.is_none_or(|f| f.get(p).copied().unwrap_or(false));
     let mut count = 0usize;
@@ -103,8 +106,11 @@ fn pooled(points: &[f32], roi: Option<&[bool]>) -> Result<f64, SceneError> {
             }
         }
     }
-    let std_sum: f64 = ss.iter().map(|s| (s / (count as f64 - 1.0)).sqrt()).sum();
-    Ok(RADIUS_STD_FACTOR * std_sum / 3.0)
+    // torch: per-axis std accumulated in f64 and stored as f32, mean of the three f32 values in
+    // f32, `.item() * 3` in f64.
+    let std: [f32; 3] = ss.map(|s| (s / (count as f64 - 1.0)).sqrt() as f32);
+    let mean = ((std[0] + std[1]) + std[2]) / 3.0f32;
+    Ok(RADIUS_STD_FACTOR * f64::from(mean))
 }
 
 #[cfg(test)]
@@ -120,7 +126,8 @@ mod tests {
         let dims = Dims { n: 4, h: 42, w: 56 };
         let r = scene_radius(&aligned, dims, RadiusRule::AcrossViews, None).unwrap();
         assert_eq!(r.rule, RadiusRule::AcrossViews);
-        assert!(((r.radius - want) / want).abs() < 1e-6, "R = {} want {want}", r.radius);
+        // Bit-exact with the official torch computation.
+        assert_eq!(r.radius, want, "R = {} want {want}", r.radius);
         assert!((want - 0.9789148271).abs() < 1e-9);
     }
 
@@ -130,18 +137,18 @@ mod tests {
         let dims = Dims { n: 2, h: 1, w: 1 };
         let pts = [0.0, 0.0, 0.0, 2.0, 4.0, 6.0];
         let r = scene_radius(&pts, dims, RadiusRule::AcrossViews, None).unwrap();
-        assert!((r.radius - 3.0 * 2.0 * 2f64.sqrt()).abs() < 1e-12);
+        assert!((r.radius - 3.0 * 2.0 * 2f64.sqrt()).abs() < 1e-6);
         // Pooled over the same two points gives the same here (two samples per axis).
         let p = scene_radius(&pts, dims, RadiusRule::Pooled, None).unwrap();
-        assert!((p.radius - r.radius).abs() < 1e-12);
+        assert!((p.radius - r.radius).abs() < 1e-6);
         // Two views, two pixels: across-view std differs from pooled std.
         let dims = Dims { n: 2, h: 1, w: 2 };
         let pts = [0.0, 0.0, 0.0, 10.0, 10.0, 10.0, 1.0, 1.0, 1.0, 11.0, 11.0, 11.0];
         let a = scene_radius(&pts, dims, RadiusRule::AcrossViews, None).unwrap();
-        assert!((a.radius - 3.0 * 2f64.sqrt().recip()).abs() < 1e-12, "{}", a.radius);
+        assert!((a.radius - 3.0 * 2f64.sqrt().recip()).abs() < 1e-6, "{}", a.radius);
         let p = scene_radius(&pts, dims, RadiusRule::Pooled, None).unwrap();
         // per axis values 0,10,1,11: mean 5.5, ss = 30.25+20.25+20.25+30.25 = 101, var = 101/3
-        assert!((p.radius - 3.0 * (101.0f64 / 3.0).sqrt()).abs() < 1e-12, "{}", p.radius);
+        assert!((p.radius - 3.0 * (101.0f64 / 3.0).sqrt()).abs() < 1e-5, "{}", p.radius);
     }
 
     #[test]
@@ -151,11 +158,11 @@ mod tests {
         let roi = [true, false, true, false];
         let r = scene_radius(&pts, dims, RadiusRule::AcrossViews, Some(&roi)).unwrap();
         assert_eq!(r.rule, RadiusRule::Pooled);
-        assert!((r.radius - 3.0 * 0.5f64.sqrt()).abs() < 1e-12);
+        assert!((r.radius - 3.0 * 0.5f64.sqrt()).abs() < 1e-6);
         let dims1 = Dims { n: 1, h: 1, w: 2 };
         let r1 = scene_radius(&pts[..6], dims1, RadiusRule::AcrossViews, None).unwrap();
         assert_eq!(r1.rule, RadiusRule::Pooled);
-        assert!((r1.radius - 3.0 * 5000f64.sqrt()).abs() < 1e-9);
+        assert!((r1.radius - 3.0 * 5000f64.sqrt()).abs() < 1e-4);
         // One point only: error, not NaN.
         let one = Dims { n: 1, h: 1, w: 1 };
         assert!(scene_radius(&pts[..3], one, RadiusRule::Pooled, None).is_err());
