@@ -1,1 +1,198 @@
-//! Synthetic scene generator (filled in by the synthetic-scene work).
+//! Procedural synthetic multi-view scenes with exact ground truth, a simulated feed-forward
+//! prediction and simulated dense matches: everything the GGPT pipeline consumes.
+//!
+//! * [`world`]: room / object layouts, camera placement (GT world: metres, y down, OpenCV).
+//! * [`geometry`]: analytic primitives, exact `f64` ray intersection.
+//! * [`texture`]: solid 3D procedural textures (colour is a function of the 3D point).
+//! * [`render`]: ray casting into GT depth / points / images.
+//! * [`feedforward`]: VGGT-like prediction with a structured error model.
+//! * [`matches`]: two simulated dense matchers in the `sfm.md` §2.1 layout.
+//! * [`stats`]: diagnostics (AUC of the ff points, match pass rates).
+//!
+//! Entry point: [`generate`]. Deterministic given [`SynthConfig::seed`], independent of the
+//! number of threads. The model is described in `docs/synthetic.md`.
+
+pub mod error;
+pub mod feedforward;
+pub mod geometry;
+pub mod matches;
+pub mod render;
+pub mod rng;
+pub mod stats;
+pub mod texture;
+pub mod world;
+
+use std::time::Instant;
+
+use nalgebra::{Matrix3, Matrix3x4};
+
+use ggpt_core::{Cameras, Dims, GroundTruth, Scene};
+
+pub use error::SynthError;
+pub use feedforward::FfErrorModel;
+pub use matches::{MatcherModel, default_matchers};
+pub use world::SceneKind;
+
+/// Minimum / maximum number of views.
+pub const VIEWS_RANGE: (usize, usize) = (2, 64);
+/// Image sides must be multiples of this (VGGT patch size, `README.md` "Feed-forward resolution").
+pub const PATCH: usize = 14;
+
+/// Generator configuration.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SynthConfig {
+    /// Scene family.
+    pub kind: SceneKind,
+    /// Number of views `N`.
+    pub views: usize,
+    /// Feed-forward width (pixels, multiple of 14; default 518).
+    pub width: usize,
+    /// Feed-forward height (pixels, multiple of 14; default 392).
+    pub height: usize,
+    /// Seed of every random choice.
+    pub seed: u64,
+    /// Generate dense matches.
+    pub matches: bool,
+    /// Room ceiling: `None` = random (rooms only).
+    pub ceiling: Option<bool>,
+    /// Feed-forward error model.
+    pub ff_error: FfErrorModel,
+    /// Simulated matchers (one `MatchSet` each).
+    pub matchers: Vec<MatcherModel>,
+}
+
+impl Default for SynthConfig {
+    fn default() -> Self {
+        SynthConfig {
+            kind: SceneKind::Room,
+            views: 8,
+            width: 518,
+            height: 392,
+            seed: 42,
+            matches: true,
+            ceiling: None,
+            ff_error: FfErrorModel::default(),
+            matchers: default_matchers(),
+        }
+    }
+}
+
+impl SynthConfig {
+    /// Checks the ranges of every parameter.
+    pub fn validate(&self) -> Result<(), SynthError> {
+        if self.views < VIEWS_RANGE.0 || self.views > VIEWS_RANGE.1 {
+            return Err(SynthError::Config(format!("views = {}, expected {}..={}", self.views, VIEWS_RANGE.0, VIEWS_RANGE.1)));
+        }
+        for (name, v) in [("width", self.width), ("height", self.height)] {
+            if v == 0 || v % PATCH != 0 || v > 4096 {
+                return Err(SynthError::Config(format!("{name} = {v}, expected a positive multiple of {PATCH} up to 4096")));
+            }
+        }
+        let mut names: Vec<&str> = self.matchers.iter().map(|m| m.name.as_str()).collect();
+        names.sort_unstable();
+        names.dedup();
+        if names.len() != self.matchers.len() {
+            return Err(SynthError::Config("matcher names must be unique".into()));
+        }
+        for m in &self.matchers {
+            if !(0.0..=1.0).contains(&m.outlier_ratio) || m.noise_px < 0.0 || m.name.is_empty() {
+                return Err(SynthError::Config(format!("matcher {:?}: outlier_ratio in [0,1], noise_px >= 0, non-empty name", m.name)));
+            }
+        }
+        Ok(())
+    }
+
+    /// Scene name `synth_<kind>_s<seed>`.
+    pub fn scene_name(&self) -> String {
+        format!("synth_{}_s{}", self.kind, self.seed)
+    }
+}
+
+/// Generation stages reported to the progress callback.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// Ray casting.
+    Render,
+    /// Feed-forward simulation.
+    FeedForward,
+    /// Matches: one tick per (matcher, pair).
+    Matches,
+}
+
+/// Everything [`generate`] produces.
+#[derive(Debug, Clone)]
+pub struct SynthOutput {
+    /// The scene: images, GT, ff prediction, matches (no SfM result).
+    pub scene: Scene,
+    /// `S0 = [s0 R0 | s0 t0]`: GT world (metres) -> feed-forward frame.
+    pub world_to_ff: Matrix3x4<f64>,
+    /// GT cameras in the feed-forward frame (unperturbed).
+    pub gt_cameras_ff: Cameras,
+    /// `[N, h, w]` relative depth error of the ff prediction before the per-view similarity.
+    pub ff_rel_depth_error: Vec<f32>,
+    /// Wall-clock seconds per stage.
+    pub timings: Vec<(String, f64)>,
+}
+
+/// Generates a scene. See [`generate_with_progress`].
+pub fn generate(cfg: &SynthConfig) -> Result<SynthOutput, SynthError> {
+    generate_with_progress(cfg, &|_, _| {})
+}
+
+/// Generates a scene, calling `progress(stage, total_ticks_of_stage)` when a stage starts with
+/// its number of ticks, and `progress(stage, 0)` for each finished tick of the match stage.
+/// GT: metres, GT world frame; feed-forward: ff frame (see [`feedforward`]); matches: ff pixels.
+pub fn generate_with_progress(cfg: &SynthConfig, progress: &(dyn Fn(Stage, u64) + Sync)) -> Result<SynthOutput, SynthError> {
+    cfg.validate()?;
+    let dims = Dims { n: cfg.views, h: cfg.height, w: cfg.width };
+    let mut timings = Vec::new();
+    let t0 = Instant::now();
+    let world = match cfg.kind {
+        SceneKind::Room => world::build_room(cfg.seed, cfg.ceiling),
+        SceneKind::Object => world::build_object(cfg.seed),
+    };
+    let (cam_from_world, focal) = world::place_cameras(&world, cfg.seed, cfg.views, cfg.width);
+    let (cx, cy) = ggpt_core::camera::centred_principal_point(dims.h, dims.w);
+    let k = Matrix3::new(focal, 0.0, cx, 0.0, focal, cy, 0.0, 0.0, 1.0);
+    let gt_cams = Cameras { cam_from_world, intrinsics: vec![k; cfg.views] };
+    progress(Stage::Render, dims.n as u64);
+    let render = render::render(&world, &gt_cams, dims);
+    let images = render::camera_images(&render, cfg.seed);
+    timings.push(("render".to_string(), t0.elapsed().as_secs_f64()));
+
+    let t1 = Instant::now();
+    progress(Stage::FeedForward, dims.n as u64);
+    let sim = feedforward::simulate_ff(&render, &gt_cams, &cfg.ff_error, cfg.seed);
+    timings.push(("feedforward".to_string(), t1.elapsed().as_secs_f64()));
+
+    let mut gt_points = Vec::with_capacity(3 * dims.pixels());
+    for (p, q) in render.points.iter().zip(&render.prim) {
+        let valid = *q != render::SKY;
+        for a in 0..3 {
+            gt_points.push(if valid { p[a] as f32 } else { 0.0 });
+        }
+    }
+    let gt = GroundTruth {
+        points: gt_points,
+        mask: render.prim.iter().map(|q| *q != render::SKY).collect(),
+        depth: Some(render.depth.iter().map(|d| *d as f32).collect()),
+        cameras: gt_cams.clone(),
+    };
+
+    let t2 = Instant::now();
+    let mut match_sets = Vec::new();
+    if cfg.matches && !cfg.matchers.is_empty() {
+        progress(Stage::Matches, (cfg.matchers.len() * dims.n * dims.n) as u64);
+        let ranks = matches::rank_scores(&images, dims, cfg.seed);
+        let tick = || progress(Stage::Matches, 0);
+        for (i, m) in cfg.matchers.iter().enumerate() {
+            match_sets.push(matches::generate_matches(&render, &gt_cams, m, i, cfg.seed, Some(ranks.clone()), &tick));
+        }
+    }
+    timings.push(("matches".to_string(), t2.elapsed().as_secs_f64()));
+
+    let scene = Scene { name: cfg.scene_name(), dims, images, gt: Some(gt), ff: Some(sim.ff), sfm: None, matches: match_sets };
+    scene.validate()?;
+    timings.push(("total".to_string(), t0.elapsed().as_secs_f64()));
+    Ok(SynthOutput { scene, world_to_ff: sim.world_to_ff, gt_cameras_ff: sim.gt_cameras_ff, ff_rel_depth_error: sim.rel_depth_error, timings })
+}
