@@ -152,97 +152,105 @@ pub fn triangulate_tracks(corr: &Correspondences, vis: &[bool], cams: &Cameras, 
     let ps = projection_matrices(cams);
     let centers: Vec<Vector3<f64>> = (0..n).map(|t| cams.center(t).coords).collect();
     let rots: Vec<_> = (0..n).map(|t| (cams.rotation(t), cams.translation(t))).collect();
+    let opts = *opts;
     let matches = &corr.matches;
-    let cos_thr_angle = opts.min_tri_angle_deg;
     let tracks: Vec<DltTrack> = (0..nt)
         .into_par_iter()
         .with_min_len(4096)
-        .filter_map(|j| {
-            let mut count = 0u32;
-            let mut m = Matrix4::zeros();
-            for t in 0..n {
-                if vis[t * nt + j] {
-                    count += 1;
-                    let i = 2 * (t * nt + j);
-                    accumulate(&mut m, &ps[t], matches[i] as f64, matches[i + 1] as f64);
-                }
-            }
-            if count < 2 {
-                return None;
-            }
-            let mut tr = DltTrack {
-                track: j,
-                num_views: count,
-                point: [f64::NAN; 3],
-                w: f64::NAN,
-                reproj_mean: f64::NAN,
-                max_angle_deg: f64::NAN,
-                status: DltStatus::RejectW,
-            };
-            let xh = smallest_eigenvector(m);
-            tr.w = xh[3];
-            if !(xh[3].abs() > MIN_HOMOGENEOUS_W) {
-                return Some(tr);
-            }
-            let x = Vector3::new(xh[0] / xh[3], xh[1] / xh[3], xh[2] / xh[3]);
-            tr.point = [x[0], x[1], x[2]];
-            // mean reprojection error
-            let mut sum = 0.0;
-            for t in 0..n {
-                if vis[t * nt + j] {
-                    let i = 2 * (t * nt + j);
-                    let p = &ps[t];
-                    let px = p[(0, 0)] * x[0] + p[(0, 1)] * x[1] + p[(0, 2)] * x[2] + p[(0, 3)];
-                    let py = p[(1, 0)] * x[0] + p[(1, 1)] * x[1] + p[(1, 2)] * x[2] + p[(1, 3)];
-                    let pz = p[(2, 0)] * x[0] + p[(2, 1)] * x[1] + p[(2, 2)] * x[2] + p[(2, 3)];
-                    let dx = px / pz - matches[i] as f64;
-                    let dy = py / pz - matches[i + 1] as f64;
-                    sum += (dx * dx + dy * dy).sqrt();
-                }
-            }
-            tr.reproj_mean = sum / count as f64;
-            if !(tr.reproj_mean < opts.max_reproj_error) {
-                tr.status = DltStatus::RejectReproj;
-                return Some(tr);
-            }
-            // max pairwise angle over a != b: min cosine
-            let mut min_cos = f64::INFINITY;
-            let mut nan = false;
-            for a in 0..n {
-                if !vis[a * nt + j] {
-                    continue;
-                }
-                let da = (x - centers[a]).normalize();
-                for b in (a + 1)..n {
-                    if !vis[b * nt + j] {
-                        continue;
-                    }
-                    let db = (x - centers[b]).normalize();
-                    let c = da.dot(&db);
-                    if c.is_nan() {
-                        nan = true;
-                    } else if c < min_cos {
-                        min_cos = c;
+        .map_init(
+            || (Vec::<(usize, f64, f64)>::with_capacity(n), Vec::<Vector3<f64>>::with_capacity(n)),
+            |(obs, dirs), j| {
+                obs.clear();
+                for t in 0..n {
+                    if vis[t * nt + j] {
+                        let i = 2 * (t * nt + j);
+                        obs.push((t, matches[i] as f64, matches[i + 1] as f64));
                     }
                 }
-            }
-            tr.max_angle_deg = if nan { f64::NAN } else { min_cos.clamp(-ANGLE_COS_CLAMP, ANGLE_COS_CLAMP).acos().to_degrees() };
-            if !(tr.max_angle_deg > cos_thr_angle) {
-                tr.status = DltStatus::RejectAngle;
-                return Some(tr);
-            }
-            if opts.cheirality {
-                let behind = (0..n).any(|t| vis[t * nt + j] && (rots[t].0 * x + rots[t].1).z <= 0.0);
-                if behind {
-                    tr.status = DltStatus::RejectCheirality;
-                    return Some(tr);
+                if obs.len() < 2 {
+                    return None;
                 }
-            }
-            tr.status = DltStatus::Kept;
-            Some(tr)
-        })
+                Some(solve_track(j, obs, dirs, &ps, &centers, &rots, &opts))
+            },
+        )
+        .filter_map(|t| t)
         .collect();
     Ok(DltOutput { tracks })
+}
+
+/// Triangulates and filters one track from its observations `(view, u, v)` (ff pixels).
+fn solve_track(
+    j: usize,
+    obs: &[(usize, f64, f64)],
+    dirs: &mut Vec<Vector3<f64>>,
+    ps: &[Matrix3x4<f64>],
+    centers: &[Vector3<f64>],
+    rots: &[(nalgebra::Matrix3<f64>, Vector3<f64>)],
+    opts: &DltOptions,
+) -> DltTrack {
+    let mut m = Matrix4::zeros();
+    for &(t, u, v) in obs {
+        accumulate(&mut m, &ps[t], u, v);
+    }
+    let count = obs.len();
+    let mut tr = DltTrack {
+        track: j,
+        num_views: count as u32,
+        point: [f64::NAN; 3],
+        w: f64::NAN,
+        reproj_mean: f64::NAN,
+        max_angle_deg: f64::NAN,
+        status: DltStatus::RejectW,
+    };
+    let xh = smallest_eigenvector(m);
+    tr.w = xh[3];
+    if !(xh[3].abs() > MIN_HOMOGENEOUS_W) {
+        return tr;
+    }
+    let x = Vector3::new(xh[0] / xh[3], xh[1] / xh[3], xh[2] / xh[3]);
+    tr.point = [x[0], x[1], x[2]];
+    // mean reprojection error over the visible views
+    let mut sum = 0.0;
+    for &(t, u, v) in obs {
+        let p = &ps[t];
+        let px = p[(0, 0)] * x[0] + p[(0, 1)] * x[1] + p[(0, 2)] * x[2] + p[(0, 3)];
+        let py = p[(1, 0)] * x[0] + p[(1, 1)] * x[1] + p[(1, 2)] * x[2] + p[(1, 3)];
+        let pz = p[(2, 0)] * x[0] + p[(2, 1)] * x[1] + p[(2, 2)] * x[2] + p[(2, 3)];
+        let dx = px / pz - u;
+        let dy = py / pz - v;
+        sum += (dx * dx + dy * dy).sqrt();
+    }
+    tr.reproj_mean = sum / count as f64;
+    if !(tr.reproj_mean < opts.max_reproj_error) {
+        tr.status = DltStatus::RejectReproj;
+        return tr;
+    }
+    // max pairwise ray angle over pairs a != b = arccos of the smallest cosine
+    dirs.clear();
+    dirs.extend(obs.iter().map(|&(t, _, _)| (x - centers[t]).normalize()));
+    let mut min_cos = f64::INFINITY;
+    let mut nan = false;
+    for a in 0..dirs.len() {
+        for b in (a + 1)..dirs.len() {
+            let c = dirs[a].dot(&dirs[b]);
+            if c.is_nan() {
+                nan = true;
+            } else if c < min_cos {
+                min_cos = c;
+            }
+        }
+    }
+    tr.max_angle_deg = if nan { f64::NAN } else { min_cos.clamp(-ANGLE_COS_CLAMP, ANGLE_COS_CLAMP).acos().to_degrees() };
+    if !(tr.max_angle_deg > opts.min_tri_angle_deg) {
+        tr.status = DltStatus::RejectAngle;
+        return tr;
+    }
+    if opts.cheirality && obs.iter().any(|&(t, _, _)| (rots[t].0 * x + rots[t].1).z <= 0.0) {
+        tr.status = DltStatus::RejectCheirality;
+        return tr;
+    }
+    tr.status = DltStatus::Kept;
+    tr
 }
 
 #[cfg(test)]

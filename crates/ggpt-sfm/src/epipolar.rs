@@ -18,7 +18,7 @@ pub const EPIPOLAR_EPS: f64 = 1e-10;
 /// The fundamental matrix mapping pixels of view `i` (ff pixels, pixel-centre convention) to
 /// epipolar lines in view `j`: `q~^T F p~ = 0`. Cameras are `cam_from_world` (OpenCV).
 pub fn fundamental(cams: &Cameras, i: usize, j: usize) -> Result<Matrix3<f64>> {
-    if i >= cams.len() || j >= cams.len() {
+    if i >= cams.len() || j >= cams.len() || i >= cams.intrinsics.len() || j >= cams.intrinsics.len() {
         return Err(SfmError::Shape(format!("fundamental: views {i}, {j} of {} cameras", cams.len())));
     }
     let (ri, ti) = (cams.rotation(i), cams.translation(i));
@@ -50,6 +50,10 @@ pub fn distances(f: &Matrix3<f64>, p: [f64; 2], q: [f64; 2]) -> (f64, f64) {
 
 /// Distances of every pixel `k` of source view `i` to its match in view `j`: `[hw]` pairs.
 pub fn pair_distances(corr: &Correspondences, cams: &Cameras, i: usize, j: usize) -> Result<Vec<(f64, f64)>> {
+    corr.validate()?;
+    if i >= corr.dims.n || j >= corr.dims.n {
+        return Err(SfmError::Shape(format!("epipolar: views {i}, {j} of {} views", corr.dims.n)));
+    }
     let f = fundamental(cams, i, j)?;
     let w = corr.dims.w;
     let base = corr.idx(j, i, 0);

@@ -176,6 +176,7 @@ pub struct BaTracks {
 /// * `m_ba`: `[N, N hw]` BA visibility; `corr`: the correspondences (ff pixels);
 /// * `ff_points`: `[N, h, w, 3]` feed-forward points (feed-forward frame).
 pub fn build_ba_tracks(selected_ids: &[usize], m_ba: &[bool], corr: &Correspondences, ff_points: &[f32]) -> Result<BaTracks> {
+    corr.validate()?;
     let n = corr.dims.n;
     let hw = corr.dims.hw();
     let nt = n * hw;
