@@ -139,24 +139,54 @@ fn umeyama_subset(src: &[Point3<f64>], tgt: &[Point3<f64>], indices: &[usize]) -
     umeyama_iter(indices.len(), pairs)
 }
 
-/// True when the uncentred `3 x n` matrix of the selected points has rank 3 (singular values
-/// above `3 ε σ_max`, the relative threshold of a full-pivot LU).
+/// Relative threshold on the Gram eigenvalues `λ_min / λ_max` below which a large point set
+/// counts as rank-deficient (the Gram matrix squares the condition number, so this is the
+/// rounding level of its entries rather than COLMAP's LU pivot threshold; only exactly
+/// degenerate sets reach it).
+const GRAM_RANK_REL_EPS: f64 = 1e2 * f64::EPSILON;
+
+/// True when the uncentred `3 x n` matrix of the selected points has rank 3 (COLMAP rejects
+/// samples whose `FullPivLU` rank is < 3). Minimal samples (`n = 3`): singular values of the
+/// 3x3 matrix above `3 ε σ_max`, the relative threshold of a full-pivot LU. Larger sets: the
+/// eigenvalues of the 3x3 Gram matrix `Σ p p^T` (O(n), no allocation).
 fn full_rank(points: &[Point3<f64>], indices: &[usize]) -> bool {
     if indices.len() < MIN_SAMPLE {
         return false;
     }
-    let m = DMatrix::from_fn(3, indices.len(), |r, c| {
-        indices.get(c).and_then(|&i| points.get(i)).map_or(f64::NAN, |p| p[r])
-    });
-    if m.iter().any(|v| !v.is_finite()) {
-        return false;
+    let mut gram = Matrix3::zeros();
+    let mut cols = Vec::with_capacity(MIN_SAMPLE);
+    for &i in indices {
+        let Some(p) = points.get(i) else { return false };
+        if !p.coords.iter().all(|v| v.is_finite()) {
+            return false;
+        }
+        if indices.len() == MIN_SAMPLE {
+            cols.push(p.coords);
+        } else {
+            gram += p.coords * p.coords.transpose();
+        }
     }
-    let Some(svd) = nalgebra::linalg::SVD::try_new_unordered(m, false, false, f64::EPSILON * 5.0, 10_000) else {
+    if indices.len() == MIN_SAMPLE {
+        let m = Matrix3::from_columns(&cols);
+        let Some(svd) = nalgebra::linalg::SVD::try_new_unordered(
+            DMatrix::from_column_slice(3, 3, m.as_slice()),
+            false,
+            false,
+            f64::EPSILON * 5.0,
+            10_000,
+        ) else {
+            return false;
+        };
+        let sv = svd.singular_values.as_slice();
+        let max = sv.iter().copied().fold(0.0_f64, f64::max);
+        return max > 0.0 && sv.iter().filter(|&&v| v > max * 3.0 * f64::EPSILON).count() == 3;
+    }
+    let Some(eig) = gram.try_symmetric_eigen(f64::EPSILON, 10_000) else {
         return false;
     };
-    let sv = svd.singular_values.as_slice();
-    let max = sv.iter().copied().fold(0.0_f64, f64::max);
-    max > 0.0 && sv.iter().filter(|&&v| v > max * 3.0 * f64::EPSILON).count() >= 3
+    let ev = eig.eigenvalues;
+    let max = ev.max();
+    max > 0.0 && ev.min() > max * GRAM_RANK_REL_EPS
 }
 
 fn umeyama_iter<'a, I>(n_expected: usize, pairs: I) -> Result<Sim3>

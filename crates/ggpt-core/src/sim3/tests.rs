@@ -344,3 +344,24 @@ fn sfm_small_f32_application_is_bit_exact() {
     assert_eq!(mismatches, 0, "f32 application differs from sim3/ff_aligned");
 }
 
+
+#[test]
+fn rank_deficient_samples_are_rejected_like_colmap() {
+    // Source points on the plane z = 0 through the origin: every uncentred 3-sample (and the
+    // whole set) has rank 2, so COLMAP's estimator yields no model; plain Umeyama (centred) works.
+    let mut rng = Pcg64::seed_from_u64(8);
+    let truth = random_sim3(&mut rng);
+    let src: Vec<_> = random_points(&mut rng, 50, 1.0).into_iter().map(|q| p(q.x, q.y, 0.0)).collect();
+    let tgt: Vec<_> = src.iter().map(|x| truth.apply(x)).collect();
+    assert!(robust_sim3(&src, &tgt, &RobustSim3Options::default(), &mut rng).is_err());
+    let (s, info) = align_with_retries(&src, &tgt, 0.03, &mut rng);
+    assert_eq!(info.method, AlignMethod::PlainUmeyama);
+    assert!(max_abs_diff(&s.to_matrix3x4(), &truth.to_matrix3x4()) < 1e-9);
+    // Shifted off the origin the same plane is fine (uncentred rank 3).
+    let src2: Vec<_> = src.iter().map(|q| p(q.x, q.y, 1.0)).collect();
+    let tgt2: Vec<_> = src2.iter().map(|x| truth.apply(x)).collect();
+    let r = robust_sim3(&src2, &tgt2, &RobustSim3Options::default(), &mut rng).unwrap();
+    assert_eq!(r.num_inliers, 50);
+    assert!(full_rank(&src2, &(0..50).collect::<Vec<_>>()));
+    assert!(!full_rank(&src, &(0..50).collect::<Vec<_>>()));
+}
