@@ -179,6 +179,8 @@ pub fn triangulate_tracks(corr: &Correspondences, vis: &[bool], cams: &Cameras, 
 }
 
 /// Triangulates and filters one track from its observations `(view, u, v)` (ff pixels).
+/// The negated comparisons are deliberate: a NaN value must reject the track.
+#[allow(clippy::neg_cmp_op_on_partial_ord)]
 fn solve_track(
     j: usize,
     obs: &[(usize, f64, f64)],
@@ -254,6 +256,7 @@ fn solve_track(
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
     use ggpt_core::Dims;

@@ -39,13 +39,13 @@ pub fn ensemble(sets: &[Correspondences]) -> Result<(Correspondences, Vec<u8>)> 
     let mut out = marked[0].clone();
     let mut sel = vec![0u8; e];
     for (mi, m) in marked.iter().enumerate().skip(1) {
-        for i in 0..e {
+        for (i, s) in sel.iter_mut().enumerate().take(e) {
             if m.cycle[i] < out.cycle[i] {
                 out.cycle[i] = m.cycle[i];
                 out.scores[i] = m.scores[i];
                 out.matches[2 * i] = m.matches[2 * i];
                 out.matches[2 * i + 1] = m.matches[2 * i + 1];
-                sel[i] = mi as u8;
+                *s = mi as u8;
             }
         }
     }

@@ -53,10 +53,14 @@ pub fn pixel_index(c: f32, size: usize, drop: bool) -> Option<(usize, bool)> {
     Some((r.clamp(0.0, max) as usize, outside))
 }
 
+/// One scatter observation: target pixel (flat) and whether it was clamped (`None` = dropped),
+/// and the index of its track in [`DltOutput::tracks`].
+pub type ObservationTarget = (Option<(usize, bool)>, usize);
+
 /// Target pixel (flat `n*h*w + y*w + x`) of every observation of every kept track, in the
 /// official order: views in order, then tracks in ascending id; `None` for dropped observations.
 /// Also returns the index into `dlt.tracks` of each observation's track.
-pub fn observation_targets(corr: &Correspondences, vis: &[bool], dlt: &DltOutput, opts: &ScatterOptions) -> Result<Vec<(Option<(usize, bool)>, usize)>> {
+pub fn observation_targets(corr: &Correspondences, vis: &[bool], dlt: &DltOutput, opts: &ScatterOptions) -> Result<Vec<ObservationTarget>> {
     corr.validate()?;
     let n = corr.dims.n;
     let (h, w) = (corr.dims.h, corr.dims.w);
@@ -130,6 +134,7 @@ pub fn scatter(corr: &Correspondences, vis: &[bool], dlt: &DltOutput, opts: &Sca
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
     use crate::dlt::DltTrack;

@@ -219,6 +219,7 @@ pub fn build_ba_tracks(selected_ids: &[usize], m_ba: &[bool], corr: &Corresponde
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
     use ggpt_core::Dims;
