@@ -182,3 +182,16 @@ fn bad_inputs_give_clear_errors_or_fallbacks() {
     let e = read_matches(&fx_path, ggpt_core::Dims { n: 3, h: 42, w: 56 }).unwrap_err();
     assert!(e.to_string().contains("N=3"), "{e}");
 }
+
+/// `--ff` accepts the official `ff_outputs.bin` (torch pickle) with the same content as the
+/// fixture's `ff/*` tensors.
+#[test]
+fn official_ff_outputs_bin_matches_safetensors_input() {
+    let bin = fixture("../official_format/synth_room_s0/ff_outputs.bin");
+    let a = read_ff(&bin).unwrap();
+    let b = read_ff(&fixture("inputs.safetensors")).unwrap();
+    assert_eq!(a.dims, b.dims);
+    assert_eq!(a.images, b.images);
+    assert_eq!(a.ff.points, b.ff.points);
+    assert_eq!(a.ff.cameras, b.ff.cameras);
+}
