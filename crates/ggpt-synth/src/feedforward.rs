@@ -66,6 +66,24 @@ impl Default for FfErrorModel {
     }
 }
 
+impl FfErrorModel {
+    /// The model with every geometric error magnitude (view similarity, warp, noise, gross
+    /// range, camera errors) multiplied by `f`; ratios, sky distances and the focal model are kept.
+    pub fn scaled(&self, f: f64) -> Self {
+        FfErrorModel {
+            view_rot_deg: self.view_rot_deg * f,
+            view_scale: self.view_scale * f,
+            view_shift: self.view_shift * f,
+            warp_amp: self.warp_amp * f,
+            depth_noise: self.depth_noise * f,
+            gross_range: (self.gross_range.0 * f, self.gross_range.1 * f),
+            cam_rot_deg: self.cam_rot_deg * f,
+            cam_trans: self.cam_trans * f,
+            ..self.clone()
+        }
+    }
+}
+
 /// Result of the simulation.
 #[derive(Debug, Clone)]
 pub struct FfSimulation {

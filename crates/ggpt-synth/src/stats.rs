@@ -178,3 +178,40 @@ pub fn match_stats(ms: &MatchSet, dims: Dims) -> MatchStats {
     let f = |c: usize| if total > 0 { c as f64 / total as f64 } else { 0.0 };
     MatchStats { score_gt_06: f(s06), ba_pass: f(ba), dlt_pass: f(dlt) }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cycle_error_matches_the_spec_test_vector() {
+        // sfm.md §3: w = 4, h = 3, A->B(p) = p + (0.5, 0.25), B->A(q) = q - (0.5, 0).
+        let dims = Dims { n: 2, h: 3, w: 4 };
+        let hw = dims.hw();
+        let mut m = vec![0f32; 2 * 4 * hw];
+        for k in 0..hw {
+            let (x, y) = ((k % 4) as f32, (k / 4) as f32);
+            // [t=1, s=0]: A->B ; [t=0, s=1]: B->A.
+            m[2 * (2 * hw + k)] = x + 0.5;
+            m[2 * (2 * hw + k) + 1] = y + 0.25;
+            m[2 * (hw + k)] = x - 0.5;
+            m[2 * (hw + k) + 1] = y;
+        }
+        let e = cycle_error(&m, dims, 0, 1);
+        let want = [0.25, 0.25, 0.25, 1.754459, 0.25, 0.25, 0.25, 1.789728, 0.5, 0.559017, 0.707107, 2.411723];
+        for (a, b) in e.iter().zip(want) {
+            assert!((*a as f64 - b).abs() < 1e-5, "{e:?}");
+        }
+    }
+
+    #[test]
+    fn umeyama_recovers_a_similarity_and_spearman_ranks() {
+        let r = nalgebra::Rotation3::from_euler_angles(0.1, -0.2, 0.3).into_inner();
+        let src: Vec<Point3<f64>> = (0..20).map(|i| Point3::new(i as f64 * 0.1, (i * i) as f64 * 0.01, (i % 3) as f64)).collect();
+        let tgt: Vec<Point3<f64>> = src.iter().map(|p| Point3::from(2.0 * r * p.coords + Vector3::new(1.0, 2.0, 3.0))).collect();
+        let (s, rr, t) = umeyama(&src, &tgt).unwrap_or((0.0, Matrix3::zeros(), Vector3::zeros()));
+        assert!((s - 2.0).abs() < 1e-9 && (rr - r).norm() < 1e-9 && (t - Vector3::new(1.0, 2.0, 3.0)).norm() < 1e-9);
+        assert!((spearman(&[1.0, 2.0, 3.0], &[10.0, 20.0, 35.0]) - 1.0).abs() < 1e-12);
+        assert!((spearman(&[1.0, 2.0, 3.0], &[3.0, 2.0, 1.0]) + 1.0).abs() < 1e-12);
+    }
+}

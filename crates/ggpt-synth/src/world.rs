@@ -304,7 +304,7 @@ pub fn place_cameras(world: &World, seed: u64, n: usize, width: usize) -> (Vec<M
     let gaps = (n.max(2) - 1) as f64;
     let (span, radius, height) = match world.kind {
         SceneKind::Room => ((uniform(&mut rng, 6.0, 12.0) * gaps).min(90.0), ROOM_CAM_RADIUS, (1.3, 1.8)),
-        SceneKind::Object => ((uniform(&mut rng, 15.0, 26.0) * gaps).min(300.0), (2.0, 2.8), (0.8, 1.7)),
+        SceneKind::Object => ((uniform(&mut rng, 15.0, 26.0) * gaps).min(300.0), (1.6, 2.3), (0.7, 1.5)),
     };
     let phi0 = match world.kind {
         SceneKind::Room => 0.0,

@@ -31,6 +31,12 @@ struct Args {
     /// Skip the (slow) match statistics.
     #[arg(long)]
     no_match_stats: bool,
+    /// Timings only: skip every quality statistic (for CPU-time measurements with `time`).
+    #[arg(long)]
+    timings_only: bool,
+    /// Scene kinds to run (comma separated: room,object).
+    #[arg(long, default_value = "room,object")]
+    kinds: String,
 }
 
 fn robust_auc(pred: &[f32], gt: &[f32], mask: &[bool]) -> (f64, f64) {
@@ -52,7 +58,16 @@ fn main() -> Result<()> {
         "| kind | seed | N | WxH | render s | ff s | matches s | total s | valid % | ff AUC@5/10 robust | ff AUC@5/10 LS | matcher: score>0.6 / BA pass / DLT pass |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
-    for kind in [SceneKind::Room, SceneKind::Object] {
+    let kinds: Vec<SceneKind> = args
+        .kinds
+        .split(',')
+        .map(|k| match k.trim() {
+            "room" => Ok(SceneKind::Room),
+            "object" => Ok(SceneKind::Object),
+            other => Err(anyhow::anyhow!("unknown kind {other:?} (room, object)")),
+        })
+        .collect::<Result<_>>()?;
+    for kind in kinds {
         for seed in 0..args.seeds {
             let cfg = SynthConfig { kind, views: args.views, width: args.width, height: args.height, seed, ..SynthConfig::default() };
             let out = generate(&cfg)?;
@@ -61,10 +76,10 @@ fn main() -> Result<()> {
             let gt = s.gt.as_ref().ok_or_else(|| anyhow::anyhow!("no gt"))?;
             let ff = s.ff.as_ref().ok_or_else(|| anyhow::anyhow!("no ff"))?;
             let valid = gt.mask.iter().filter(|m| **m).count() as f64 / gt.mask.len() as f64 * 100.0;
-            let (r5, r10) = robust_auc(&ff.points, &gt.points, &gt.mask);
-            let ls = point_accuracy(&ff.points, &gt.points, &gt.mask);
+            let (r5, r10) = if args.timings_only { (f64::NAN, f64::NAN) } else { robust_auc(&ff.points, &gt.points, &gt.mask) };
+            let ls = if args.timings_only { None } else { point_accuracy(&ff.points, &gt.points, &gt.mask) };
             let mut mstats = String::new();
-            if !args.no_match_stats {
+            if !args.no_match_stats && !args.timings_only {
                 for ms in &s.matches {
                     let st = match_stats(ms, s.dims);
                     mstats += &format!("{}: {:.2} / {:.2} / {:.2}; ", ms.matcher, st.score_gt_06, st.ba_pass, st.dlt_pass);
