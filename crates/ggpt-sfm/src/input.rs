@@ -77,9 +77,13 @@ pub fn read_ff(path: &Path) -> Result<FfInput> {
             .ok_or_else(|| SfmError::format(path, "ff", "the scene directory has no feed-forward outputs"))?;
         return Ok(FfInput { name: scene.name, dims: scene.dims, images: scene.images, ff, image_names: Vec::new() });
     }
-    let is_st = std::fs::read(path)
-        .map(|b| b.len() >= 9 && b[8] == b'{')
-        .map_err(|e| SfmError::Io { path: path.to_path_buf(), source: e })?;
+    // safetensors: 8-byte header length, then the JSON header starting with '{'
+    let is_st = {
+        use std::io::Read;
+        let mut head = [0u8; 9];
+        let mut f = std::fs::File::open(path).map_err(|e| SfmError::Io { path: path.to_path_buf(), source: e })?;
+        f.read_exact(&mut head).is_ok() && head[8] == b'{'
+    };
     if !is_st {
         let b = ggpt_core::io::official::read_ff_outputs_bin(path)?;
         let n = b.dims.n;
