@@ -241,6 +241,7 @@ fn match_pass_rates_are_realistic() {
 }
 
 #[test]
+#[allow(clippy::needless_range_loop)]
 fn feedforward_error_statistics_and_confidence() {
     for kind in [SceneKind::Room, SceneKind::Object] {
         let cfg = SynthConfig { kind, views: 4, width: 112, height: 84, seed: 11, matches: false, ..SynthConfig::default() };
