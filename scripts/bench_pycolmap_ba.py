@@ -68,6 +68,7 @@ def build(problem):
 
 def options_for(problem, threads):
     opts = pycolmap.BundleAdjustmentOptions()
+    opts.print_summary = False
     opts.refine_focal_length = bool(problem["refine_focal"])
     opts.refine_principal_point = False
     opts.refine_extra_params = False
@@ -118,34 +119,43 @@ def main():
             rust = {r["name"]: r for r in json.load(f)}
 
     print(f"pycolmap {pycolmap.__version__}")
-    print("| problem | observations | pycolmap iters | pycolmap time (s) | pycolmap final cost | rust iters | rust time (s) | rust final cost | speed-up |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print(
+        "| problem | observations | pycolmap iters | pycolmap wall (s) | pycolmap CPU (s) | pycolmap final cost "
+        "| rust iters | rust wall (s) | rust CPU (s) | rust final cost | wall speed-up | CPU speed-up |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for path in sorted(glob.glob(os.path.join(args.dir, "ba_*.json"))):
         name = os.path.splitext(os.path.basename(path))[0]
         with open(path) as f:
             problem = json.load(f)
         best = None
+        cpu_total = 0.0
         for _ in range(max(1, args.repeats)):
             rec = build(problem)  # not timed: problem construction
             opts = options_for(problem, args.threads)
             cfg = config_for(problem, rec)
             t0 = time.perf_counter()
+            c0 = time.process_time()
             ba = pycolmap.create_default_bundle_adjuster(opts, cfg, rec)
             summary = ba.solve()
+            cpu_total += time.process_time() - c0
             dt = time.perf_counter() - t0
             if best is None or dt < best[0]:
                 best = (dt, summary)
         dt, summary = best
+        cpu = cpu_total / max(1, args.repeats)
         cost, _, iters = final_cost(summary)
         r = rust.get(name)
         if r:
             speed = dt / r["seconds"] if r["seconds"] > 0 else float("nan")
+            rcpu = r.get("cpu_seconds", float("nan"))
+            cspeed = cpu / rcpu if rcpu and rcpu > 0 else float("nan")
             print(
-                f"| {name} | {len(problem['obs_view'])} | {iters} | {dt:.4f} | {cost:.6e} | "
-                f"{r['iterations']} | {r['seconds']:.4f} | {r['final_cost']:.6e} | {speed:.2f}x |"
+                f"| {name} | {len(problem['obs_view'])} | {iters} | {dt:.4f} | {cpu:.4f} | {cost:.6e} | "
+                f"{r['iterations']} | {r['seconds']:.4f} | {rcpu:.4f} | {r['final_cost']:.6e} | {speed:.2f}x | {cspeed:.2f}x |"
             )
         else:
-            print(f"| {name} | {len(problem['obs_view'])} | {iters} | {dt:.4f} | {cost:.6e} | - | - | - | - |")
+            print(f"| {name} | {len(problem['obs_view'])} | {iters} | {dt:.4f} | {cpu:.4f} | {cost:.6e} | - | - | - | - | - | - |")
 
 
 if __name__ == "__main__":

@@ -63,8 +63,8 @@ struct State {
 
 /// One linearisation (Jacobians at the current state), reused for all damping trials.
 struct Linearization<const D: usize> {
-    /// Per observation: `W_o = J_cᵀ w J_p` (D x 3).
-    w: Vec<[[f64; 3]; D]>,
+    /// Per observation: `W_oᵀ = J_pᵀ w J_c` (3 x D, rows contiguous for the vectorised Schur loop).
+    w: Vec<[[f64; D]; 3]>,
     /// Per point: `V_j = Σ J_pᵀ w J_p` and `g_j = Σ J_pᵀ w r`.
     v: Vec<Matrix3<f64>>,
     gp: Vec<Vector3<f64>>,
@@ -248,6 +248,9 @@ fn cam_indices<const D: usize>(l: &Layout, v: usize) -> [usize; D] {
     idx
 }
 
+/// Residual, camera Jacobian (2 x D) and point Jacobian (2 x 3) of one observation.
+type ObsJacobian<const D: usize> = (Vector2<f64>, [[f64; D]; 2], [[f64; 3]; 2]);
+
 /// Residual and Jacobians of one observation. Returns `None` when the point is not in front.
 #[inline]
 fn residual_jac<const D: usize>(
@@ -256,7 +259,7 @@ fn residual_jac<const D: usize>(
     v: usize,
     x: &Vector3<f64>,
     xy: &Vector2<f64>,
-) -> Option<(Vector2<f64>, [[f64; D]; 2], [[f64; 3]; 2])> {
+) -> Option<ObsJacobian<D>> {
     let r_mat = &s.rot[v];
     let q = r_mat * x;
     let p = q + s.trans[v];
@@ -309,7 +312,7 @@ fn evaluate(l: &Layout, s: &State) -> Option<f64> {
             for o in l.pt_start[j]..l.pt_start[j + 1] {
                 let v = l.obs_view[o];
                 let p = s.rot[v] * x + s.trans[v];
-                if !(p.z > MIN_DEPTH) {
+                if p.z.is_nan() || p.z <= MIN_DEPTH {
                     return None;
                 }
                 let [fx, fy] = s.focal[l.cam_of_view[v]];
@@ -333,7 +336,7 @@ fn evaluate(l: &Layout, s: &State) -> Option<f64> {
 }
 
 struct LinChunk<const D: usize> {
-    w: Vec<[[f64; 3]; D]>,
+    w: Vec<[[f64; D]; 3]>,
     v: Vec<Matrix3<f64>>,
     gp: Vec<Vector3<f64>>,
     hv: Vec<[[f64; D]; D]>,
@@ -358,7 +361,7 @@ fn linearize<const D: usize>(l: &Layout, s: &State) -> Option<Linearization<D>> 
                 let view = l.obs_view[o];
                 let (r, jc, jp) = residual_jac::<D>(l, s, view, &x, &l.obs_xy[o])?;
                 let wgt = l.loss.evaluate(r.norm_squared()).1;
-                let mut wo = [[0.0; 3]; D];
+                let mut wo = [[0.0; D]; 3];
                 let hv = &mut out.hv[view];
                 let gv = &mut out.gv[view];
                 for i in 0..2 {
@@ -374,7 +377,7 @@ fn linearize<const D: usize>(l: &Layout, s: &State) -> Option<Linearization<D>> 
                             hv[c][c2] += wc * jci[c2];
                         }
                         for b2 in 0..3 {
-                            wo[c][b2] += wc * jpi[b2];
+                            wo[b2][c] += wc * jpi[b2];
                         }
                         gv[c] += jci[c] * ri;
                     }
@@ -486,7 +489,7 @@ fn damped_step<const D: usize>(l: &Layout, lin: &Linearization<D>, mu: f64) -> O
                 let mut yo = [[0.0; 3]; D];
                 for c in 0..D {
                     for b2 in 0..3 {
-                        yo[c][b2] = w[c][0] * vinv[(0, b2)] + w[c][1] * vinv[(1, b2)] + w[c][2] * vinv[(2, b2)];
+                        yo[c][b2] = w[0][c] * vinv[(0, b2)] + w[1][c] * vinv[(1, b2)] + w[2][c] * vinv[(2, b2)];
                     }
                 }
                 let rv = &mut out.rhs[l.obs_view[o]];
@@ -497,30 +500,18 @@ fn damped_step<const D: usize>(l: &Layout, lin: &Linearization<D>, mu: f64) -> O
             }
             for (ia, o) in (o0..o1).enumerate() {
                 let va = l.obs_view[o];
-                let ya = &y[ia];
-                for (ib, o2) in (o..o1).enumerate() {
+                for (ib, o2) in (o..o1).enumerate().map(|(k, o2)| (ia + k, o2)) {
                     let vb = l.obs_view[o2];
-                    let wb = &lin.w[o2];
-                    // B = Y_a W_bᵀ (D x D)
-                    let mut bm = [[0.0; D]; D];
-                    for c in 0..D {
-                        for c2 in 0..D {
-                            bm[c][c2] = ya[c][0] * wb[c2][0] + ya[c][1] * wb[c2][1] + ya[c][2] * wb[c2][2];
-                        }
-                    }
-                    let diag_pair = ib == 0;
-                    if va < vb {
+                    // Block (va, vb) += Y_a W_bᵀ; stored in the upper block (min, max): when
+                    // va > vb use its transpose Y_b W_aᵀ (V⁻¹ is symmetric).
+                    if va <= vb {
                         let blk = &mut out.blocks[va * n + vb];
-                        add_block(blk, &bm, false);
-                    } else if va > vb {
-                        let blk = &mut out.blocks[vb * n + va];
-                        add_block(blk, &bm, true);
-                    } else {
-                        let blk = &mut out.blocks[va * n + va];
-                        add_block(blk, &bm, false);
-                        if !diag_pair {
-                            add_block(blk, &bm, true);
+                        acc_product(blk, &y[ia], &lin.w[o2]);
+                        if va == vb && ia != ib {
+                            acc_product(blk, &y[ib], &lin.w[o]);
                         }
+                    } else {
+                        acc_product(&mut out.blocks[vb * n + va], &y[ib], &lin.w[o]);
                     }
                 }
             }
@@ -611,9 +602,9 @@ fn damped_step<const D: usize>(l: &Layout, lin: &Linearization<D>, mu: f64) -> O
                             continue;
                         }
                         let d = dc[ix[c]];
-                        r[0] -= w[c][0] * d;
-                        r[1] -= w[c][1] * d;
-                        r[2] -= w[c][2] * d;
+                        r[0] -= w[0][c] * d;
+                        r[1] -= w[1][c] * d;
+                        r[2] -= w[2][c] * d;
                     }
                 }
                 vinv[j] * r
@@ -637,6 +628,18 @@ fn damped_step<const D: usize>(l: &Layout, lin: &Linearization<D>, mu: f64) -> O
     }
     let predicted = 0.5 * pred;
     (predicted.is_finite() && dp.iter().all(|d| d.iter().all(|x| x.is_finite()))).then_some(Step { dc, dp, predicted })
+}
+
+/// `acc += Y Wᵀ` for `Y` (D x 3, row-major) and `Wᵀ` (3 x D, row-major): the inner loop runs
+/// over contiguous rows so that it vectorises.
+#[inline(always)]
+fn acc_product<const D: usize>(acc: &mut [[f64; D]; D], y: &[[f64; 3]; D], wt: &[[f64; D]; 3]) {
+    for (row, yc) in acc.iter_mut().zip(y) {
+        let (y0, y1, y2) = (yc[0], yc[1], yc[2]);
+        for c2 in 0..D {
+            row[c2] += y0 * wt[0][c2] + y1 * wt[1][c2] + y2 * wt[2][c2];
+        }
+    }
 }
 
 #[inline]
@@ -757,7 +760,7 @@ fn run<const D: usize>(
             None => {
                 mu *= nu;
                 nu *= 2.0;
-                if !(mu < mu_limit) {
+                if mu.is_nan() || mu >= mu_limit {
                     message = "converged: no decrease found (damping limit reached)".into();
                     break;
                 }

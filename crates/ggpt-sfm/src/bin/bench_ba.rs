@@ -9,7 +9,6 @@
 //! python scripts/bench_pycolmap_ba.py /tmp/ba_bench
 //! ```
 
-use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -57,6 +56,19 @@ struct Args {
     seed: u64,
 }
 
+/// CPU time (user + system) of this process in seconds from `/proc/self/stat` (Linux, 10 ms
+/// ticks); `None` elsewhere. The machine this was written on is shared, so wall time alone is
+/// unreliable; with `--threads 1` the CPU time is a fair per-solver measure.
+fn process_cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let rest = stat.rsplit_once(')')?.1;
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    // After the command name: state is field 3; utime / stime are fields 14 / 15 (1-based).
+    let utime: f64 = fields.get(11)?.parse().ok()?;
+    let stime: f64 = fields.get(12)?.parse().ok()?;
+    Some((utime + stime) / 100.0)
+}
+
 struct Row {
     name: String,
     views: usize,
@@ -64,6 +76,7 @@ struct Row {
     observations: usize,
     report: BaReport,
     seconds: f64,
+    cpu_seconds: f64,
 }
 
 fn problem_json(p: &BaProblem, opts: &BaOptions) -> serde_json::Value {
@@ -131,6 +144,7 @@ fn main() -> Result<()> {
             write_atomic(&path, |w| w.write_all(&text)).with_context(|| format!("writing {}", path.display()))?;
         }
         let mut best: Option<(f64, BaReport)> = None;
+        let cpu0 = process_cpu_seconds();
         for _ in 0..args.repeats.max(1) {
             let t0 = Instant::now();
             let report = bundle_adjust(&synth.problem, &opts).with_context(|| format!("bundle adjustment of {name}"))?;
@@ -140,6 +154,10 @@ fn main() -> Result<()> {
                 best = Some((dt, report));
             }
         }
+        let cpu_seconds = match (cpu0, process_cpu_seconds()) {
+            (Some(a), Some(b)) => (b - a) / args.repeats.max(1) as f64,
+            _ => f64::NAN,
+        };
         let Some((seconds, report)) = best else { continue };
         tracing::info!("{name}: {}", report.message);
         rows.push(Row {
@@ -149,20 +167,22 @@ fn main() -> Result<()> {
             observations: synth.problem.observations.len(),
             report,
             seconds,
+            cpu_seconds,
         });
     }
     pb.finish_and_clear();
     println!(
-        "| views | points | observations | iterations | time (s) | initial cost | final cost | status |\n|---|---|---|---|---|---|---|---|"
+        "| views | points | observations | iterations | wall (s, min) | CPU (s, mean) | initial cost | final cost | status |\n|---|---|---|---|---|---|---|---|---|"
     );
     for r in &rows {
         println!(
-            "| {} | {} | {} | {} | {:.4} | {:.6e} | {:.6e} | {} |",
+            "| {} | {} | {} | {} | {:.4} | {:.4} | {:.6e} | {:.6e} | {} |",
             r.views,
             r.points,
             r.observations,
             r.report.iterations,
             r.seconds,
+            r.cpu_seconds,
             r.report.initial_cost,
             r.report.final_cost,
             r.report.message
@@ -173,7 +193,7 @@ fn main() -> Result<()> {
             .iter()
             .map(|r| {
                 json!({"name": r.name, "views": r.views, "points": r.points, "observations": r.observations,
-                       "iterations": r.report.iterations, "seconds": r.seconds, "initial_cost": r.report.initial_cost,
+                       "iterations": r.report.iterations, "seconds": r.seconds, "cpu_seconds": r.cpu_seconds, "initial_cost": r.report.initial_cost,
                        "final_cost": r.report.final_cost, "threads": rayon::current_num_threads()})
             })
             .collect();
