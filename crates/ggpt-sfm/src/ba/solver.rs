@@ -420,12 +420,12 @@ fn linearize<const D: usize>(l: &Layout, s: &State) -> Option<Linearization<D>> 
         lin.w.extend(p.w);
         lin.v.extend(p.v);
         lin.gp.extend(p.gp);
-        for v in 0..n {
-            for c in 0..D {
-                for c2 in c..D {
-                    hv[v][c][c2] += p.hv[v][c][c2];
-                }
-                gv[v][c] += p.gv[v][c];
+        for (acc, b) in hv.iter_mut().zip(&p.hv) {
+            add_block(acc, b, false);
+        }
+        for (acc, g) in gv.iter_mut().zip(&p.gv) {
+            for (a, x) in acc.iter_mut().zip(g) {
+                *a += x;
             }
         }
     }

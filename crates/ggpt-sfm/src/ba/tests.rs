@@ -354,3 +354,16 @@ fn malformed_problems_are_errors() {
 
 
 
+
+#[test]
+fn levenberg_damping_converges() {
+    let cfg = SyntheticConfig { pixel_noise: 0.0, focal_noise: 0.0, ..small_cfg(12) };
+    let mut s = generate(&cfg);
+    s.problem.loss = LossFunction::Trivial;
+    let opts = BaOptions { damping: Damping::Levenberg, function_tolerance: 1e-12, ..BaOptions::default() };
+    let report = bundle_adjust(&s.problem, &opts).unwrap();
+    assert!(report.success, "{}", report.message);
+    assert!(report.final_cost < 1e-8 * report.initial_cost, "{} -> {}", report.initial_cost, report.final_cost);
+    let err = max_relative_rotation_error(&report.cam_from_world, &s.gt_cam_from_world);
+    assert!(err < 1e-3, "rotation error {err}");
+}
