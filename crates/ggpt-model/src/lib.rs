@@ -1,3 +1,36 @@
-//! GGPT network (filled in by the network work).
+//! GGPT network (Point Transformer V3 backbone + guidance encoding + residual head) in
+//! Burn 0.22, bit-faithful to the official PyTorch model (`docs/network.md`,
+//! `shared/spec/network.md`).
+//!
+//! Flow: [`plan::plan_batch`] (host integer planning) -> [`PreparedBatch::new`] (upload index
+//! tables) -> [`Ggpt::forward`] -> [`GgptOutput::to_chunks`].
 
+#![warn(missing_docs)]
+
+pub mod attention;
+pub mod block;
+pub mod chunk_io;
+pub mod config;
+pub mod device;
+pub mod drop_path;
+pub mod error;
+pub mod gelu;
+pub mod head;
+pub mod infer;
+pub mod linear_bn;
+pub mod model;
+pub mod norm;
+pub mod ops;
 pub mod plan;
+pub mod pooling;
+pub mod prepared;
+pub mod recorder;
+pub mod sparse_conv;
+pub mod unpooling;
+pub mod weights;
+
+pub use config::GgptConfig;
+pub use error::{ModelError, Result};
+pub use model::{ChunkOutput, Ggpt, GgptOutput};
+pub use prepared::PreparedBatch;
+pub use recorder::Recorder;

@@ -1,0 +1,85 @@
+//! Serialized window attention (network.md §7), flash window partition.
+//!
+//! ```text
+//! per window group (W windows of L tokens, gathered by the order row):
+//!   rows = Linear_{C -> 3C}(x[gather])                [W L, 3C] -> [W, L, 3, H, d]
+//!          (columns q | k | v; head h owns h d..(h+1) d)
+//!   q, k, v                                           [W, H, L, d]
+//!   o    = softmax((q s) k^T) v                       [W, H, L, d] -> [W L, C]   (s = d^-1/2)
+//! out  = concat(o of all groups)[take]                [N, C]    (each token from its owning window)
+//! y    = Linear_{C -> C}(out)                         [N, C]
+//! ```
+//!
+//! Full windows are processed in sub-groups so that the `[W, H, L, L]` score tensor stays below
+//! [`SCORE_BUDGET_FLOATS`] (network.md §7.5).
+
+use burn::module::Module;
+use burn::nn::{Linear, LinearConfig};
+use burn::tensor::activation::softmax;
+use burn::tensor::{Device, Tensor};
+
+use crate::ops::gather_rows;
+use crate::prepared::AttnIndex;
+
+/// Upper bound on the floats of one score tensor `[W, H, L, L]` (128 MiB of f32).
+pub const SCORE_BUDGET_FLOATS: usize = 32 * 1024 * 1024;
+
+/// Multi-head self-attention over serialization windows.
+#[derive(Module, Debug)]
+pub struct WindowAttention {
+    /// `Linear(C -> 3C)` with bias (official `attn.qkv`).
+    pub qkv: Linear,
+    /// `Linear(C -> C)` (official `attn.proj`).
+    pub proj: Linear,
+    /// Heads `H`.
+    pub num_heads: usize,
+}
+
+impl WindowAttention {
+    /// New attention over `channels` with `num_heads` heads.
+    pub fn new(channels: usize, num_heads: usize, device: &Device) -> Self {
+        Self {
+            qkv: LinearConfig::new(channels, 3 * channels).init(device),
+            proj: LinearConfig::new(channels, channels).init(device),
+            num_heads,
+        }
+    }
+
+    /// `x [N, C]` (already LayerNorm-ed) `-> [N, C]` using the windows of one order row.
+    pub fn forward(&self, x: Tensor<2>, index: &AttnIndex) -> Tensor<2> {
+        let [_, c] = x.dims();
+        let h = self.num_heads;
+        let d = c / h;
+        let scale = (d as f64).powf(-0.5);
+        let device = x.device();
+        let mut outs = Vec::new();
+        for group in &index.groups {
+            let l = group.len;
+            let per_window = h * l * l;
+            let step = (SCORE_BUDGET_FLOATS / per_window.max(1)).max(1);
+            let mut w0 = 0;
+            while w0 < group.num_windows {
+                let nw = step.min(group.num_windows - w0);
+                let idx = group.gather.clone().narrow(0, w0 * l, nw * l);
+                // qkv is row-wise: project only the gathered rows (no [N, 3C] buffer).
+                let rows = self.qkv.forward(gather_rows(x.clone(), idx)).reshape([nw, l, 3, h, d]);
+                let part = |i: usize| rows.clone().narrow(2, i, 1).reshape([nw, l, h, d]).swap_dims(1, 2);
+                let (q, k, v) = (part(0), part(1), part(2));
+                let scores = q.mul_scalar(scale).matmul(k.swap_dims(2, 3));
+                let attn = softmax(scores, 3);
+                let o = attn.matmul(v).swap_dims(1, 2).reshape([nw * l, c]);
+                outs.push(o);
+                w0 += nw;
+            }
+        }
+        let all = match outs.len() {
+            0 => return Tensor::zeros([0, c], &device),
+            1 => match outs.pop() {
+                Some(o) => o,
+                None => return Tensor::zeros([0, c], &device),
+            },
+            _ => Tensor::cat(outs, 0),
+        };
+        self.proj.forward(gather_rows(all, index.take.clone()))
+    }
+}

@@ -1,0 +1,136 @@
+//! Forward benchmark of the released configuration with random weights on surface-like chunks
+//! (~30 % guidance). Prints one table row per run: tokens, device, threads, plan / upload /
+//! forward seconds, peak RSS.
+//!
+//! ```text
+//! cargo run --release -p ggpt-model --bin bench_forward -- --tokens 26000 --device flex --threads 1
+//! ```
+//! Peak RSS is per process: run one size per invocation for a clean memory figure.
+
+use std::time::Instant;
+
+use ggpt_model::device::device_from_name;
+use ggpt_model::infer::{plan_config, prepare_chunks};
+use ggpt_model::plan::{ChunkInput, plan_batch};
+use ggpt_model::{Ggpt, GgptConfig, PreparedBatch};
+
+/// Fraction of pixels with a DLT point.
+const GUIDANCE_FRACTION: f32 = 0.3;
+
+fn usage() -> ! {
+    eprintln!(
+        "usage: bench_forward [--tokens N[,N...]] [--device cpu|ndarray|flex|wgpu] [--threads T] [--preset released|small|tiny] [--repeat R]"
+    );
+    std::process::exit(2)
+}
+
+/// A wavy surface seen from a camera: `k` pixels on a grid, depth-like variation, 30 % guidance
+/// near the dense points, a few points outside the unit cube. Deterministic in `seed`.
+fn surface_chunk(k: usize, seed: u64) -> ChunkInput {
+    let mut s = seed.wrapping_mul(0x9E3779B97F4A7C15) | 1;
+    let mut next = move || {
+        s ^= s << 13;
+        s ^= s >> 7;
+        s ^= s << 17;
+        (s >> 11) as f32 / (1u64 << 53) as f32
+    };
+    let w = ((k as f32) * 4.0 / 3.0).sqrt().ceil() as usize;
+    let mut c = ChunkInput::default();
+    for i in 0..k {
+        let (u, v) = ((i % w) as f32 / w as f32 * 2.0 - 1.0, (i / w) as f32 / w as f32 * 2.0 - 1.0);
+        let z = 0.35 * (2.5 * u).sin() * (1.7 * v).cos() + 0.1 * (7.0 * u * v).sin();
+        let p = [0.95 * u + 0.002 * next(), 0.95 * v, z];
+        c.ff_pts.push(p);
+        c.ff_conf.push(1.0 + 5.0 * next());
+        let g = next() < GUIDANCE_FRACTION;
+        c.geo_msk.push(g);
+        c.geo_pts.push(if g { [p[0] + 0.003 * (next() - 0.5), p[1] + 0.003 * (next() - 0.5), p[2]] } else { [0.0; 3] });
+    }
+    c
+}
+
+/// Peak resident set size of this process in MiB (Linux `VmHWM`).
+fn peak_rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|v| v.parse::<f64>().ok())
+        })
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+fn main() {
+    let mut tokens = vec![26_000usize];
+    let mut device_name = "cpu".to_string();
+    let mut threads = 0usize;
+    let mut preset = "released".to_string();
+    let mut repeat = 1usize;
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        let mut val = || args.next().unwrap_or_else(|| usage());
+        match a.as_str() {
+            "--tokens" => {
+                tokens = val().split(',').map(|t| t.parse().unwrap_or_else(|_| usage())).collect();
+            }
+            "--device" => device_name = val(),
+            "--threads" => threads = val().parse().unwrap_or_else(|_| usage()),
+            "--preset" => preset = val(),
+            "--repeat" => repeat = val().parse().unwrap_or_else(|_| usage()),
+            _ => usage(),
+        }
+    }
+    if threads > 0 {
+        // SAFETY: no other thread exists yet.
+        unsafe { std::env::set_var("MATMUL_NUM_THREADS", threads.to_string()) };
+        if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global() {
+            eprintln!("thread pool: {e}");
+        }
+    }
+    let cfg = GgptConfig::preset(&preset).unwrap_or_else(|e| {
+        eprintln!("{e}");
+        std::process::exit(2)
+    });
+    let device = device_from_name(&device_name).unwrap_or_else(|e| {
+        eprintln!("{e}");
+        std::process::exit(2)
+    });
+    let model = Ggpt::new(&cfg, &device);
+    println!("| tokens | pixels | device | threads | plan s | upload s | forward s | peak RSS MiB |");
+    println!("|---|---|---|---|---|---|---|---|");
+    for &n in &tokens {
+        let k = ((n as f32) / (1.0 + GUIDANCE_FRACTION)).round() as usize;
+        let chunk = surface_chunk(k, 7);
+        for _ in 0..repeat {
+            let t0 = Instant::now();
+            let plan = match plan_batch(std::slice::from_ref(&chunk), &plan_config(&cfg)) {
+                Ok(p) => p,
+                Err(e) => {
+                    eprintln!("plan: {e}");
+                    std::process::exit(1)
+                }
+            };
+            let t_plan = t0.elapsed().as_secs_f64();
+            let t1 = Instant::now();
+            let batch = PreparedBatch::new(&plan, &cfg, &device).unwrap_or_else(|e| {
+                eprintln!("{e}");
+                std::process::exit(1)
+            });
+            let t_up = t1.elapsed().as_secs_f64();
+            let t2 = Instant::now();
+            let out = model.forward(&batch);
+            let conf = out.tokens_conf.to_data();
+            let t_fwd = t2.elapsed().as_secs_f64();
+            drop(conf);
+            println!(
+                "| {} | {k} | {device_name} | {} | {t_plan:.2} | {t_up:.2} | {t_fwd:.2} | {:.0} |",
+                batch.num_tokens,
+                if threads == 0 { "all".to_string() } else { threads.to_string() },
+                peak_rss_mib()
+            );
+        }
+    }
+    let _ = prepare_chunks;
+}

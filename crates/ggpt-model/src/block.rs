@@ -1,0 +1,108 @@
+//! Pre-norm PTv3 block with xCPE (network.md §5.2).
+//!
+//! ```text
+//! x, x_conv : [N, C]      (x_conv = x except for the first block of a decoder stage, §9.2)
+//! x1 = x  + CPE(x_conv)             CPE(u) = LayerNorm(Linear(SubMConv3d(u)))
+//! x2 = x1 + DropPath(Attn(LN1(x1)))
+//! x3 = x2 + DropPath(MLP(LN2(x2)))  MLP(u) = Linear_{4C->C}(GELU(Linear_{C->4C}(u)))
+//! ```
+
+use burn::module::Module;
+use burn::nn::{LayerNorm, Linear, LinearConfig};
+use burn::tensor::{Device, Tensor};
+
+use crate::attention::WindowAttention;
+use crate::config::GgptConfig;
+use crate::drop_path::DropPath;
+use crate::gelu::gelu;
+use crate::norm::layer_norm;
+use crate::ops::map_row_blocks;
+use crate::prepared::PreparedLevel;
+use crate::recorder::Recorder;
+use crate::sparse_conv::SubmConv3d;
+
+/// xCPE: sparse conv -> Linear -> LayerNorm (official `cpe.0`, `cpe.1`, `cpe.2`).
+#[derive(Module, Debug)]
+pub struct Cpe {
+    /// `SubMConv3d(C, C)`.
+    pub conv: SubmConv3d,
+    /// `Linear(C -> C)`.
+    pub linear: Linear,
+    /// LayerNorm over C.
+    pub norm: LayerNorm,
+}
+
+/// The block MLP (official `mlp.0.fc1`, `mlp.0.fc2`).
+#[derive(Module, Debug)]
+pub struct Mlp {
+    /// `Linear(C -> ratio C)`.
+    pub fc1: Linear,
+    /// `Linear(ratio C -> C)`.
+    pub fc2: Linear,
+}
+
+impl Mlp {
+    /// `u [N, C] -> [N, C]`.
+    pub fn forward(&self, u: Tensor<2>) -> Tensor<2> {
+        self.fc2.forward(gelu(self.fc1.forward(u)))
+    }
+}
+
+/// One transformer block.
+#[derive(Module, Debug)]
+pub struct Block {
+    /// Conditional positional encoding branch.
+    pub cpe: Cpe,
+    /// LN1 (official `norm1.0`).
+    pub norm1: LayerNorm,
+    /// Window attention.
+    pub attn: WindowAttention,
+    /// LN2 (official `norm2.0`).
+    pub norm2: LayerNorm,
+    /// MLP.
+    pub mlp: Mlp,
+    /// Drop path of the attention and MLP branches (training only).
+    pub drop_path: DropPath,
+    /// Order row used by this block (`i mod 4`).
+    pub order_row: usize,
+}
+
+impl Block {
+    /// Block `index` of a stage with `channels` / `num_heads`, drop-path rate `drop`.
+    pub fn new(cfg: &GgptConfig, channels: usize, num_heads: usize, index: usize, drop: f64, device: &Device) -> Self {
+        Self {
+            cpe: Cpe {
+                conv: SubmConv3d::new(channels, channels, device),
+                linear: LinearConfig::new(channels, channels).init(device),
+                norm: layer_norm(cfg, channels, device),
+            },
+            norm1: layer_norm(cfg, channels, device),
+            attn: WindowAttention::new(channels, num_heads, device),
+            norm2: layer_norm(cfg, channels, device),
+            mlp: Mlp {
+                fc1: LinearConfig::new(channels, cfg.mlp_ratio * channels).init(device),
+                fc2: LinearConfig::new(cfg.mlp_ratio * channels, channels).init(device),
+            },
+            drop_path: DropPath::new(drop),
+            order_row: index % 4,
+        }
+    }
+
+    /// `x, x_conv [N, C] -> [N, C]`; records `{name}.{cpe_conv_out,cpe_out,attn_out,mlp_out,out}`.
+    pub fn forward(&self, x: Tensor<2>, x_conv: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> Tensor<2> {
+        let conv = self.cpe.conv.forward(x_conv, &level.conv);
+        rec.record(|| format!("{name}.cpe_conv_out"), &conv);
+        let cpe = self.cpe.norm.forward(self.cpe.linear.forward(conv));
+        rec.record(|| format!("{name}.cpe_out"), &cpe);
+        let x1 = x + cpe;
+        let attn = self.attn.forward(self.norm1.forward(x1.clone()), &level.attn[self.order_row]);
+        rec.record(|| format!("{name}.attn_out"), &attn);
+        let x2 = x1 + self.drop_path.forward(attn);
+        let hidden = self.mlp.fc1.weight.dims()[1];
+        let mlp = map_row_blocks(x2.clone(), hidden, |rows| self.mlp.forward(self.norm2.forward(rows)));
+        rec.record(|| format!("{name}.mlp_out"), &mlp);
+        let x3 = x2 + self.drop_path.forward(mlp);
+        rec.record(|| format!("{name}.out"), &x3);
+        x3
+    }
+}

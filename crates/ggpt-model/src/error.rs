@@ -1,0 +1,69 @@
+//! Error type of the network crate.
+
+use std::path::PathBuf;
+
+/// Errors of configuration parsing, weight loading and forward preparation.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    /// A configuration file could not be read or parsed.
+    #[error("model config {path}: {message}")]
+    Config {
+        /// File (or `<preset>` / `<json>`) the configuration came from.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// A checkpoint could not be read.
+    #[error("checkpoint {path}: {message}")]
+    CheckpointRead {
+        /// Checkpoint file.
+        path: PathBuf,
+        /// Reader error.
+        message: String,
+    },
+    /// A checkpoint does not match the model (strict loading, network.md §12.3).
+    #[error(
+        "checkpoint {path} does not match the model: {} missing, {} unused, {} mis-shaped/invalid\n{details}",
+        missing.len(), unused.len(), invalid.len()
+    )]
+    CheckpointMismatch {
+        /// Checkpoint file.
+        path: PathBuf,
+        /// Model parameters without a tensor in the file (official key name where known).
+        missing: Vec<String>,
+        /// File tensors that no model parameter uses.
+        unused: Vec<String>,
+        /// Tensors with the wrong shape or dtype, or that failed to convert.
+        invalid: Vec<String>,
+        /// Human-readable listing of all of the above.
+        details: String,
+    },
+    /// A checkpoint could not be written.
+    #[error("writing checkpoint {path}: {message}")]
+    CheckpointWrite {
+        /// Destination file.
+        path: PathBuf,
+        /// Writer error.
+        message: String,
+    },
+    /// The batch plan is inconsistent with the model or with itself.
+    #[error("batch plan: {0}")]
+    Plan(String),
+    /// Planning (token encoding, serialization, tables) failed.
+    #[error("planning failed: {0}")]
+    Planning(String),
+    /// Reading a tensor back from the device failed.
+    #[error("reading tensor {name} from the device: {message}")]
+    Readback {
+        /// Tensor name.
+        name: String,
+        /// Backend message.
+        message: String,
+    },
+    /// An unknown device name.
+    #[error("unknown or unavailable device '{0}' (expected cpu, ndarray, flex or wgpu)")]
+    Device(String),
+}
+
+/// Result alias of this crate.
+pub type Result<T, E = ModelError> = std::result::Result<T, E>;
