@@ -231,7 +231,13 @@ pub fn load_burnpack(mut model: Ggpt, path: &Path) -> Result<Ggpt> {
     if !path.is_file() {
         return Err(ModelError::CheckpointRead { path: path.to_path_buf(), message: "no such file".into() });
     }
-    let mut store = burn_store::BurnpackStore::from_file(path).allow_partial(true).validate(false);
+    // Read the whole file now: a file-backed store materialises tensors lazily, which would
+    // break if the file is replaced or deleted after loading.
+    let bytes = std::fs::read(path)
+        .map_err(|e| ModelError::CheckpointRead { path: path.to_path_buf(), message: e.to_string() })?;
+    let mut store = burn_store::BurnpackStore::from_bytes(Some(burn::tensor::Bytes::from_bytes_vec(bytes)))
+        .allow_partial(true)
+        .validate(false);
     let result = model
         .load_from(&mut store)
         .map_err(|e| ModelError::CheckpointRead { path: path.to_path_buf(), message: e.to_string() })?;

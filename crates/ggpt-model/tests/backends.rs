@@ -83,6 +83,10 @@ impl ModuleVisitor for GradCollector<'_> {
         self.path.pop();
     }
     fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        // BatchNorm running statistics are buffers, not trainable: no gradient expected.
+        if matches!(self.path.last().map(String::as_str), Some("running_mean" | "running_var")) {
+            return;
+        }
         let g = param.val().grad(self.grads).map(|g| values(&g));
         self.out.push((self.path.join("."), g));
     }
