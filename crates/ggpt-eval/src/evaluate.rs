@@ -9,7 +9,7 @@ use ggpt_core::io::st::{Dtype, StFile, le_f32, le_f64};
 use ggpt_core::metrics::{
     CameraMetrics, DepthMetrics, EVAL_ALIGN_MAX_ERROR, PointMetrics, camera_metrics, depth_metrics, point_metrics,
 };
-use ggpt_core::{Cameras, Dims, Scene};
+use ggpt_core::{Cameras, Dims, Scene, SfmResult};
 use rand::SeedableRng;
 use rand_pcg::Pcg64;
 
@@ -250,6 +250,68 @@ pub fn evaluate_scene(scene: &Scene, pred: &PredSource, cams: CameraSource, seed
         cameras,
         warnings,
     })
+}
+
+/// File name of the `ggpt-sfm run` output looked up inside a directory given to [`load_sfm_outputs`].
+pub const SFM_OUTPUT_FILE: &str = "sfm_dlt_outputs.safetensors";
+
+/// Reads an SfM result to evaluate in place of the scene's own (`ggpt-eval --sfm PATH`):
+/// the `sfm_dlt_outputs.safetensors` written by `ggpt-sfm run` (keys `points` F32 `[N,h,w,3]` in
+/// the SfM frame, `point_masks` BOOL `[N,h,w]`, `extrinsics` F32 `[N,3,4]` or `[N,4,4]`
+/// `cam_from_world`, `intrinsics` F32 `[N,3,3]` in ff pixels, optional 0-d BOOL
+/// `camera_success` / `points_success`), a directory holding that file (e.g. the `--out` of
+/// `ggpt-sfm run`), or an official `sfm_dlt_outputs.bin`. The size must match `dims`.
+pub fn load_sfm_outputs(path: &Path, dims: Dims) -> Result<SfmResult> {
+    let file = if path.is_dir() {
+        let st = path.join(SFM_OUTPUT_FILE);
+        let bin = path.join("sfm_dlt_outputs.bin");
+        if st.is_file() {
+            st
+        } else if bin.is_file() {
+            bin
+        } else {
+            bail!("{}: directory holds neither {SFM_OUTPUT_FILE} nor sfm_dlt_outputs.bin", path.display());
+        }
+    } else {
+        path.to_path_buf()
+    };
+    let (n, h, w) = (dims.n, dims.h, dims.w);
+    let res = if file.extension().is_some_and(|e| e == "bin") {
+        let b = ggpt_core::io::official::read_sfm_dlt_outputs_bin(&file).with_context(|| format!("reading SfM outputs {}", file.display()))?;
+        if b.dims != dims {
+            bail!("{}: SfM outputs are {:?}, the scene is {dims:?}", file.display(), b.dims);
+        }
+        b.to_sfm_result()
+    } else {
+        let st = StFile::open(&file).with_context(|| format!("reading SfM outputs {}", file.display()))?;
+        let points = st.f32_finite("points", &[n, h, w, 3])?;
+        let mask = st.bool("point_masks", &[n, h, w])?;
+        let rows = match st.shape("extrinsics")? {
+            [m, r, 4] if *m == n && (*r == 3 || *r == 4) => *r,
+            s => bail!("{} [extrinsics]: shape {s:?}, expected [{n}, 3, 4] or [{n}, 4, 4]", file.display()),
+        };
+        let ext = camera_floats(&st, "extrinsics", &[n, rows, 4])?;
+        let k = camera_floats(&st, "intrinsics", &[n, 3, 3])?;
+        let cam_from_world = ext.chunks_exact(rows * 4).map(|m| nalgebra::Matrix3x4::from_row_iterator(m.iter().take(12).copied())).collect();
+        let intrinsics = k.chunks_exact(9).map(|m| nalgebra::Matrix3::from_row_iterator(m.iter().copied())).collect();
+        let flag = |key: &str, default: bool| -> Result<bool> { if st.has(key) { Ok(st.scalar_bool(key)?) } else { Ok(default) } };
+        let points_success = flag("points_success", mask.iter().any(|&b| b))?;
+        SfmResult { points, mask, cameras: Cameras { cam_from_world, intrinsics }, camera_success: flag("camera_success", true)?, points_success }
+    };
+    tracing::info!("SfM outputs read from {} (camera_success {}, {} pixels with a point)", file.display(), res.camera_success, res.mask.iter().filter(|&&b| b).count());
+    Ok(res)
+}
+
+/// A finite F32 or F64 camera tensor of exactly `shape`, as f64.
+fn camera_floats(st: &StFile, key: &str, shape: &[usize]) -> Result<Vec<f64>> {
+    let v = match st.dtype(key)? {
+        Dtype::F64 => st.f64(key, shape)?,
+        _ => st.f32(key, shape)?.into_iter().map(f64::from).collect(),
+    };
+    if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+        bail!("{} [{key}]: non-finite value at flat index {i}", st.path().display());
+    }
+    Ok(v)
 }
 
 /// Human-readable table of one or more reports (one row per report).

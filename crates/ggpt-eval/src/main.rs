@@ -13,7 +13,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use ggpt_core::io::scene_dir::read_scene;
 
-use crate::evaluate::{CameraSource, PredSource, evaluate_scene, format_table, write_json};
+use crate::evaluate::{CameraSource, PredSource, evaluate_scene, format_table, load_sfm_outputs, write_json};
 
 /// Evaluate point maps and cameras against ground truth.
 ///
@@ -53,6 +53,11 @@ struct EvalArgs {
     /// `sfm`, `gt` or `none`.
     #[arg(long, value_enum, default_value_t = CameraSource::Auto)]
     cameras: CameraSource,
+    /// Evaluate this SfM result instead of the scene's own: the `sfm_dlt_outputs.safetensors`
+    /// written by `ggpt-sfm run`, its `--out` directory, or an official `sfm_dlt_outputs.bin`
+    /// (used by `--pred sfm` and `--cameras sfm`).
+    #[arg(long, value_name = "FILE|DIR")]
+    sfm: Option<PathBuf>,
     /// Write the JSON report here (atomically).
     #[arg(long, value_name = "OUT.json")]
     json: Option<PathBuf>,
@@ -114,7 +119,10 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         bail!("--scene DIR is required (or use `ggpt-eval demo`); see --help");
     };
     let pred = PredSource::parse(&a.pred)?;
-    let scene = read_scene(&scene_dir).with_context(|| format!("reading scene {}", scene_dir.display()))?;
+    let mut scene = read_scene(&scene_dir).with_context(|| format!("reading scene {}", scene_dir.display()))?;
+    if let Some(p) = &a.sfm {
+        scene.sfm = Some(load_sfm_outputs(p, scene.dims).with_context(|| format!("--sfm {}", p.display()))?);
+    }
     tracing::info!("scene {} ({} views, {}x{})", scene.name, scene.dims.n, scene.dims.w, scene.dims.h);
     let report = evaluate_scene(&scene, &pred, a.cameras, a.seed)?;
     if let Some(path) = &a.json {

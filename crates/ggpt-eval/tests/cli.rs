@@ -112,3 +112,52 @@ fn help_documents_the_flags() {
         assert!(s.contains(flag), "--help lacks {flag}:\n{s}");
     }
 }
+
+/// `--sfm FILE|DIR`: an SfM result written by `ggpt-sfm run` (here: GT points under a similarity on
+/// half of the pixels, GT cameras as F32) is evaluated with `--pred sfm` / `--cameras sfm`.
+#[test]
+fn sfm_outputs_file_is_evaluated() {
+    use ggpt_core::io::st::StWriter;
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("demo");
+    run_ok(bin().args(["demo", "--views", "3", "--width", "56", "--height", "42", "--seed", "3", "--out"]).arg(&out));
+    let scene_dir = out.join("scene");
+    let scene = read_scene(&scene_dir).unwrap();
+    let d = scene.dims;
+    let gt = scene.gt.as_ref().unwrap();
+    let pts: Vec<f32> = gt.points.iter().map(|v| 0.5 * v - 2.0).collect();
+    let mask: Vec<bool> = (0..d.pixels()).map(|p| p % 2 == 0).collect();
+    let masked: Vec<f32> = pts.iter().enumerate().map(|(i, &v)| if mask[i / 3] { v } else { 0.0 }).collect();
+    let ext: Vec<f32> = gt.cameras.cam_from_world.iter().flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>()).collect();
+    let k: Vec<f32> = gt.cameras.intrinsics.iter().flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>()).collect();
+    let mut w = StWriter::new();
+    w.f32("points", &[d.n, d.h, d.w, 3], &masked);
+    w.bool("point_masks", &[d.n, d.h, d.w], &mask);
+    w.f32("extrinsics", &[d.n, 3, 4], &ext);
+    w.f32("intrinsics", &[d.n, 3, 3], &k);
+    w.bool("camera_success", &[], &[true]);
+    w.bool("points_success", &[], &[true]);
+    let sfm_dir = tmp.path().join("sfm_out");
+    std::fs::create_dir_all(&sfm_dir).unwrap();
+    let file = sfm_dir.join("sfm_dlt_outputs.safetensors");
+    std::fs::write(&file, w.finish(&file, None).unwrap()).unwrap();
+    for arg in [file.clone(), sfm_dir.clone()] {
+        let json = tmp.path().join("sfm.json");
+        run_ok(bin().arg("--scene").arg(&scene_dir).arg("--sfm").arg(&arg).args(["--pred", "sfm", "--json"]).arg(&json));
+        let r = read_json(&json);
+        assert_eq!(r["camera_source"], "sfm");
+        assert!(f(&r, &["points", "auc_1"]) > 99.9, "{r}");
+        let ratio = f(&r, &["points", "ratio"]);
+        assert!((ratio - 0.5).abs() < 0.05, "ratio {ratio}");
+        assert_eq!(f(&r, &["cameras", "auc_5"]), 100.0);
+    }
+    // wrong size: error naming the file
+    let mut w = StWriter::new();
+    w.f32("points", &[1, 2, 2, 3], &[0.0; 12]);
+    let bad = tmp.path().join("bad.safetensors");
+    std::fs::write(&bad, w.finish(&bad, None).unwrap()).unwrap();
+    let o = bin().arg("--scene").arg(&scene_dir).arg("--sfm").arg(&bad).args(["--pred", "sfm"]).output().unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("bad.safetensors") && err.contains("points"), "{err}");
+}

@@ -9,7 +9,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use ggpt_core::Cameras;
-use ggpt_sfm::ba::{CameraModel, LossFunction};
+use ggpt_sfm::ba::{BaOptions, CameraModel, LossFunction};
 use ggpt_sfm::input::{cameras_from_flat, read_ff, read_matches};
 use ggpt_sfm::masks::Preset;
 use ggpt_sfm::output::write_outputs;
@@ -38,6 +38,17 @@ enum PresetArg {
     Demo,
     /// > 50 views: BA 0.8 / 1 px, 512 tracks per view, DLT 0.4 / 1 px, angle 7°, reprojection 1 px.
     ManyViews,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum BaSolverArg {
+    /// The official pycolmap call: free gauge, no tolerances, 100 LM iterations (Ceres' path;
+    /// reproduces the official cameras and costs).
+    Official,
+    /// The project solver of sfm.md §7.2: view 0 and one component of t_1 fixed, stops at a
+    /// relative cost decrease below 1e-6 (fewer iterations; may end in a neighbouring minimum of
+    /// the Cauchy cost).
+    Project,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -98,9 +109,16 @@ struct RunArgs {
     /// Cauchy loss scale of the BA (pixels); 0 = trivial (squared) loss.
     #[arg(long)]
     ba_loss_scale: Option<f64>,
-    /// Max BA iterations.
+    /// Max BA iterations (default 100).
     #[arg(long)]
     ba_max_iterations: Option<usize>,
+    /// BA solver settings.
+    #[arg(long, value_enum, default_value = "official")]
+    ba_solver: BaSolverArg,
+    /// Older official BA initialisation (the version that produced sfm_small's `ba/*`): initial
+    /// focal length(s) + 0.5 px.
+    #[arg(long)]
+    ba_legacy_focal_offset: bool,
     /// Skip the BA and use these cameras (safetensors with `extrinsics` [N,3,4] and
     /// `intrinsics` [N,3,3], or `ba/out_extrinsics` / `ba/out_intrinsics`).
     #[arg(long)]
@@ -180,6 +198,11 @@ fn run(args: RunArgs) -> Result<()> {
     if let Some(s) = args.ba_loss_scale {
         cfg.ba_loss = if s > 0.0 { LossFunction::Cauchy { scale: s } } else { LossFunction::Trivial };
     }
+    cfg.ba_options = match args.ba_solver {
+        BaSolverArg::Official => BaOptions::official(),
+        BaSolverArg::Project => BaOptions::default(),
+    };
+    cfg.legacy_focal_offset = args.ba_legacy_focal_offset;
     if let Some(it) = args.ba_max_iterations {
         cfg.ba_options.max_iterations = it;
     }

@@ -24,6 +24,10 @@ use crate::tracks::{BaTracks, TrackSelection, build_ba_tracks, select_ba_tracks,
 /// Cauchy loss scale of the BA (pixels, `sfm.md` §5 / §7.1).
 pub const BA_CAUCHY_SCALE: f64 = 0.1;
 
+/// Focal offset (pixels) of the older official BA initialisation (`sfm.md` §7.1: it added 0.5 to
+/// the whole intrinsic matrix; only `fx`, `fy` matter once the principal point is fixed).
+pub const LEGACY_FOCAL_OFFSET: f64 = 0.5;
+
 /// Configuration of the SfM stage.
 #[derive(Debug, Clone)]
 pub struct SfmConfig {
@@ -39,8 +43,14 @@ pub struct SfmConfig {
     pub refine_focal: bool,
     /// BA robust loss (all presets: Cauchy, scale 0.1 px).
     pub ba_loss: LossFunction,
-    /// Solver options.
+    /// Solver options (default [`BaOptions::official`]: the official pycolmap call, free gauge,
+    /// 100 iterations, which reproduces Ceres' path and its converged cost on `sfm_small`;
+    /// [`BaOptions::default`] is the faster project solver of `sfm.md` §7.2, see `docs/ba.md`).
     pub ba_options: BaOptions,
+    /// Older official behaviour (the fork that produced `sfm_small`'s `ba/*`): add
+    /// [`LEGACY_FOCAL_OFFSET`] px to the initial focal length(s) of the BA (default off: the newest
+    /// official code shifts only the principal point, `sfm.md` §7.1).
+    pub legacy_focal_offset: bool,
     /// Scatter options (clamp vs drop outside observations).
     pub scatter: ScatterOptions,
     /// [project] optional DLT cheirality test (default off).
@@ -64,7 +74,8 @@ impl SfmConfig {
             shared_camera: true,
             refine_focal: true,
             ba_loss: LossFunction::Cauchy { scale: BA_CAUCHY_SCALE },
-            ba_options: BaOptions::default(),
+            ba_options: BaOptions::official(),
+            legacy_focal_offset: false,
             scatter: ScatterOptions::default(),
             cheirality: false,
             seed: 42,
@@ -391,17 +402,31 @@ pub fn run_sfm_correspondences(
 }
 
 /// Builds the [`BaProblem`] of the selected tracks (`sfm.md` §7.1): initial cameras and
-/// intrinsics = feed-forward (feed-forward frame), observations in ff pixels (pixel-centre
-/// convention), principal point fixed at the image centre.
+/// intrinsics = feed-forward (feed-forward frame; focal + [`LEGACY_FOCAL_OFFSET`] with
+/// [`SfmConfig::legacy_focal_offset`]), observations in ff pixels (pixel-centre convention),
+/// principal point fixed at the image centre.
 pub fn ba_problem(ff: &FeedForward, dims: Dims, tracks: &BaTracks, cfg: &SfmConfig) -> BaProblem {
     BaProblem {
         cam_from_world: ff.cameras.cam_from_world.clone(),
-        intrinsics: ff.cameras.intrinsics.clone(),
+        intrinsics: if cfg.legacy_focal_offset {
+            ff.cameras
+                .intrinsics
+                .iter()
+                .map(|k| {
+                    let mut k = *k;
+                    k[(0, 0)] += LEGACY_FOCAL_OFFSET;
+                    k[(1, 1)] += LEGACY_FOCAL_OFFSET;
+                    k
+                })
+                .collect()
+        } else {
+            ff.cameras.intrinsics.clone()
+        },
         points: tracks.points.clone(),
         observations: tracks
             .observations
             .iter()
-            .map(|o| BaObservation { view: o.view, point: o.point, xy: Vector2::new(o.xy[0], o.xy[1]) })
+            .map(|o| BaObservation { view: o.view, point: o.point, xy: Vector2::new(colmap_round_trip(o.xy[0]), colmap_round_trip(o.xy[1])) })
             .collect(),
         model: cfg.camera_model,
         shared_camera: cfg.shared_camera,
@@ -409,6 +434,13 @@ pub fn ba_problem(ff: &FeedForward, dims: Dims, tracks: &BaTracks, cfg: &SfmConf
         loss: cfg.ba_loss,
         image_size: (dims.h, dims.w),
     }
+}
+
+/// An f32 ff-pixel coordinate as the official BA sees it (`sfm.md` §7.1 problem layout): shifted
+/// into COLMAP's corner convention in f32 (`f32(x + 0.5)`), widened to f64 and shifted back (exact
+/// in f64). Keeps our BA problem bit-identical to the official one, so both follow the same LM path.
+fn colmap_round_trip(x: f64) -> f64 {
+    f64::from(x as f32 + 0.5) - 0.5
 }
 
 /// Initial cameras with the principal point moved to the image centre (the BA failure fallback).
