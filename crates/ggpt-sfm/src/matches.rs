@@ -154,14 +154,15 @@ impl Correspondences {
         Ok(out)
     }
 
-    /// Per source view `s`: number of tracks with at least one off-diagonal match of positive score.
+    /// Per source view `s`: number of tracks with at least one valid off-diagonal match (score
+    /// `>= 1e-5`, [`crate::ensemble::INVALID_SCORE`]).
     pub fn valid_matches_per_view(&self) -> Vec<usize> {
         let n = self.dims.n;
         let hw = self.dims.hw();
         let mut out = vec![0usize; n];
         for (s, o) in out.iter_mut().enumerate() {
             *o = (0..hw)
-                .filter(|&k| (0..n).any(|t| t != s && self.scores[self.idx(t, s, k)] > 0.0))
+                .filter(|&k| (0..n).any(|t| t != s && self.scores[self.idx(t, s, k)] >= crate::ensemble::INVALID_SCORE))
                 .count();
         }
         out

@@ -13,7 +13,7 @@ use nalgebra::{Matrix3, Vector2};
 
 use crate::ba::{BaObservation, BaOptions, BaProblem, CameraModel, LossFunction, bundle_adjust};
 use crate::dlt::{DltOptions, DltOutput, triangulate_tracks};
-use crate::ensemble::ensemble;
+use crate::ensemble::{INVALID_SCORE, ensemble};
 use crate::epipolar::epipolar_filter;
 use crate::error::{Result, SfmError};
 use crate::masks::{Preset, Thresholds, compute_masks};
@@ -282,9 +282,9 @@ pub fn run_sfm_correspondences(
             }
         }
     }
-    let any_valid = (0..n).any(|t| (0..n).any(|s| s != t && corr.scores[corr.idx(t, s, 0)..corr.idx(t, s, 0) + hw].iter().any(|&v| v > 0.0)));
+    let any_valid = (0..n).any(|t| (0..n).any(|s| s != t && corr.scores[corr.idx(t, s, 0)..corr.idx(t, s, 0) + hw].iter().any(|&v| v >= INVALID_SCORE)));
     if !any_valid {
-        return Err(SfmError::Invalid("all matcher scores are zero (or invalid): there is no correspondence to use".into()));
+        return Err(SfmError::Invalid("all matcher scores are zero (or invalid: non-finite or below 1e-5): there is no correspondence to use".into()));
     }
     let views_without_matches: Vec<usize> = corr.valid_matches_per_view().iter().enumerate().filter(|(_, c)| **c == 0).map(|(v, _)| v).collect();
     if !views_without_matches.is_empty() {
