@@ -5,6 +5,8 @@
 //! outside the image are clamped to the border (official) or dropped (option). Per pixel the
 //! points are averaged (f64 accumulation).
 
+use rayon::prelude::*;
+
 use crate::dlt::{DltOutput, DltStatus};
 use crate::error::{Result, SfmError};
 use crate::matches::Correspondences;
@@ -95,40 +97,78 @@ pub fn observation_targets(corr: &Correspondences, vis: &[bool], dlt: &DltOutput
 
 /// Scatters the kept DLT tracks (`sfm.md` §10). `vis` is the DLT visibility `[N, N hw]` used by
 /// the triangulation, `corr` the correspondences (ff pixels).
+///
+/// Views are processed in parallel (rayon): an observation in view `t` only writes pixels of view
+/// `t`, and within a view the tracks are visited in ascending id, so every pixel accumulates its
+/// points in the official order ([`observation_targets`]) whatever the thread count.
 pub fn scatter(corr: &Correspondences, vis: &[bool], dlt: &DltOutput, opts: &ScatterOptions) -> Result<ScatterResult> {
-    let targets = observation_targets(corr, vis, dlt, opts)?;
-    let px = corr.dims.pixels();
-    let mut sum = vec![0f64; 3 * px];
-    let mut rsum = vec![0f64; px];
-    let mut count = vec![0u32; px];
-    let (mut observations, mut clamped, mut dropped) = (0, 0, 0);
-    for (target, ti) in targets {
-        let Some((p, outside)) = target else {
-            dropped += 1;
-            continue;
-        };
-        let tr = &dlt.tracks[ti];
-        observations += 1;
-        if outside {
-            clamped += 1;
-        }
-        for a in 0..3 {
-            sum[3 * p + a] += tr.point[a];
-        }
-        rsum[p] += tr.reproj_mean;
-        count[p] = count[p].saturating_add(1);
+    corr.validate()?;
+    let n = corr.dims.n;
+    let (h, w) = (corr.dims.h, corr.dims.w);
+    let hw = h * w;
+    let nt = n * hw;
+    if vis.len() != n * nt {
+        return Err(SfmError::Shape(format!("scatter: visibility of {} entries, expected {}", vis.len(), n * nt)));
     }
+    let kept: Vec<&crate::dlt::DltTrack> = dlt.tracks.iter().filter(|t| t.status == DltStatus::Kept).collect();
+    if let Some(t) = kept.iter().find(|t| t.track >= nt) {
+        return Err(SfmError::Shape(format!("scatter: track id {} out of range (N*h*w = {nt})", t.track)));
+    }
+    let px = corr.dims.pixels();
     let mut points = vec![0f32; 3 * px];
     let mut reproj = vec![0f32; px];
-    for p in 0..px {
-        if count[p] > 0 {
-            let c = count[p] as f64;
-            for a in 0..3 {
-                points[3 * p + a] = (sum[3 * p + a] / c) as f32;
-            }
-            reproj[p] = (rsum[p] / c) as f32;
-        }
+    let mut count = vec![0u32; px];
+    if px == 0 {
+        return Ok(ScatterResult { points, mask: Vec::new(), count, reproj, observations: 0, clamped: 0, dropped: 0 });
     }
+    // compact copy of the kept tracks (id, point, reprojection error): every view reads it once
+    let kept_ids: Vec<usize> = kept.iter().map(|t| t.track).collect();
+    let kept_vals: Vec<[f64; 4]> = kept.iter().map(|t| [t.point[0], t.point[1], t.point[2], t.reproj_mean]).collect();
+    // per view: (observations, clamped, dropped)
+    let stats: Vec<(usize, usize, usize)> = points
+        .par_chunks_mut(3 * hw)
+        .zip(reproj.par_chunks_mut(hw))
+        .zip(count.par_chunks_mut(hw))
+        .enumerate()
+        .map(|(t, ((pts, rep), cnt))| {
+            // one view at a time keeps the random-access accumulators small (cache)
+            let mut sum = vec![[0f64; 4]; hw];
+            let (mut observations, mut clamped, mut dropped) = (0, 0, 0);
+            let vis_t = &vis[t * nt..(t + 1) * nt];
+            let m_t = &corr.matches[2 * t * nt..2 * (t + 1) * nt];
+            for (&j, val) in kept_ids.iter().zip(&kept_vals) {
+                if !vis_t[j] {
+                    continue;
+                }
+                let target = match (pixel_index(m_t[2 * j], w, opts.drop_outside), pixel_index(m_t[2 * j + 1], h, opts.drop_outside)) {
+                    (Some((x, ox)), Some((y, oy))) => Some((y * w + x, ox || oy)),
+                    _ => None,
+                };
+                let Some((p, outside)) = target else {
+                    dropped += 1;
+                    continue;
+                };
+                observations += 1;
+                clamped += usize::from(outside);
+                let acc = &mut sum[p];
+                for a in 0..4 {
+                    acc[a] += val[a];
+                }
+                cnt[p] = cnt[p].saturating_add(1);
+            }
+            for p in 0..hw {
+                if cnt[p] > 0 {
+                    let c = f64::from(cnt[p]);
+                    for a in 0..3 {
+                        pts[3 * p + a] = (sum[p][a] / c) as f32;
+                    }
+                    rep[p] = (sum[p][3] / c) as f32;
+                }
+            }
+            (observations, clamped, dropped)
+        })
+        .collect();
+    let (observations, clamped, dropped) = stats.iter().fold((0, 0, 0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2));
     let mask = count.iter().map(|&c| c > 0).collect();
     Ok(ScatterResult { points, mask, count, reproj, observations, clamped, dropped })
 }
@@ -194,5 +234,58 @@ mod tests {
         assert_eq!(r.count, vec![1, 1, 0, 0, 0, 1]);
         assert_eq!(r.dropped, 1);
         assert_eq!(r.reproj[5], 0.5);
+    }
+
+    /// The parallel per-view scatter equals the sequential accumulation in the official order
+    /// ([`observation_targets`]) bit for bit, on random data with collisions, clamps and drops.
+    #[test]
+    fn parallel_scatter_equals_sequential_official_order() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
+        let dims = Dims { n: 3, h: 5, w: 7 };
+        let (n, hw) = (dims.n, dims.hw());
+        let nt = n * hw;
+        let e = n * nt;
+        let mut corr = Correspondences {
+            dims,
+            matches: (0..2 * e).map(|_| rng.random_range(-2.0f32..9.0)).collect(),
+            scores: vec![1.0; e],
+            cycle: vec![0.0; e],
+        };
+        corr.apply_diagonal();
+        let vis: Vec<bool> = (0..e).map(|_| rng.random_bool(0.6)).collect();
+        let tracks = (0..nt)
+            .map(|j| {
+                let p = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(1.0..3.0)];
+                track(j, p, if rng.random_bool(0.8) { DltStatus::Kept } else { DltStatus::RejectReproj })
+            })
+            .collect();
+        let dlt = DltOutput { tracks };
+        for opts in [ScatterOptions::default(), ScatterOptions { drop_outside: true }] {
+            let r = scatter(&corr, &vis, &dlt, &opts).unwrap();
+            let px = dims.pixels();
+            let (mut sum, mut cnt) = (vec![0f64; 3 * px], vec![0u32; px]);
+            let mut dropped = 0;
+            for (target, ti) in observation_targets(&corr, &vis, &dlt, &opts).unwrap() {
+                match target {
+                    Some((p, _)) => {
+                        for a in 0..3 {
+                            sum[3 * p + a] += dlt.tracks[ti].point[a];
+                        }
+                        cnt[p] += 1;
+                    }
+                    None => dropped += 1,
+                }
+            }
+            assert_eq!(r.count, cnt);
+            assert_eq!(r.dropped, dropped);
+            assert_eq!(dropped > 0, opts.drop_outside);
+            for p in 0..px {
+                for a in 0..3 {
+                    let want = if cnt[p] > 0 { (sum[3 * p + a] / cnt[p] as f64) as f32 } else { 0.0 };
+                    assert_eq!(r.points[3 * p + a].to_bits(), want.to_bits(), "pixel {p}");
+                }
+            }
+        }
     }
 }

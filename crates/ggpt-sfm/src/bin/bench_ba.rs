@@ -48,6 +48,12 @@ struct Args {
     /// Hold the focal length constant (sfm.md §12.2 setting) instead of refining a shared one.
     #[arg(long)]
     fixed_focal: bool,
+    /// Solver settings: `official` (the GGPT / pycolmap default call and the `ggpt-sfm` default:
+    /// free gauge, function / parameter tolerance 0, 100 iterations) or `project` (two-camera
+    /// gauge, function tolerance 1e-6, parameter tolerance 1e-8). Exported with the problems so
+    /// that pycolmap runs the same settings.
+    #[arg(long, default_value = "official")]
+    solver: String,
     /// Write the problems (JSON) and our results to this directory for the pycolmap script.
     #[arg(long)]
     export: Option<PathBuf>,
@@ -127,7 +133,11 @@ fn main() -> Result<()> {
     if let Some(dir) = &args.export {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    let opts = BaOptions::default();
+    let opts = match args.solver.as_str() {
+        "official" => BaOptions::official(),
+        "project" => BaOptions::default(),
+        other => anyhow::bail!("--solver {other}: expected official or project"),
+    };
     let pb = ProgressBar::new((sizes.len() * args.repeats) as u64);
     pb.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} {msg}").context("progress style")?);
     let mut rows = Vec::new();

@@ -3,7 +3,8 @@
 //! `cargo run --release -p ggpt-sfm --bin bench_dlt [-- --views 4,8,16 --width 518 --height 392 --reps 3]`
 //! builds a synthetic scene (cameras on an arc looking at points 4–6 units away, every pixel a
 //! track visible in its source view and in each other view with probability 1/2, 0.3 px noise),
-//! runs [`ggpt_sfm::dlt::triangulate_tracks`] and prints a table of tracks per second.
+//! runs [`ggpt_sfm::dlt::triangulate_tracks`] and prints a table of tracks per second, plus the
+//! time of the following [`ggpt_sfm::scatter::scatter`] of the kept tracks.
 
 use std::time::Instant;
 
@@ -12,6 +13,7 @@ use clap::Parser;
 use ggpt_core::{Cameras, Dims};
 use ggpt_sfm::dlt::{DltOptions, triangulate_tracks};
 use ggpt_sfm::matches::Correspondences;
+use ggpt_sfm::scatter::{ScatterOptions, scatter};
 use nalgebra::{Matrix3, Matrix3x4, Point3, Rotation3, Vector3};
 
 #[derive(Parser, Debug)]
@@ -106,8 +108,10 @@ fn main() -> Result<()> {
     let args = Args::parse();
     let opts = DltOptions { max_reproj_error: 4.0, min_tri_angle_deg: 3.0, cheirality: false };
     println!("DLT throughput, {}x{} ff pixels, {} rayon threads", args.width, args.height, rayon::current_num_threads());
-    println!("| views | tracks (>= 2 views) | mean views/track | best wall time (s) | tracks/s (wall) | CPU time (s) | tracks per CPU-second | kept |");
-    println!("|---|---|---|---|---|---|---|---|");
+    println!(
+        "| views | tracks (>= 2 views) | mean views/track | best wall time (s) | tracks/s (wall) | CPU time (s) | tracks per CPU-second | kept | scatter wall (s) | scatter CPU (s) |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     for &n in &args.views {
         let (corr, vis, cams) = scene(n, args.height, args.width, args.seed);
         let mut best = f64::INFINITY;
@@ -124,10 +128,21 @@ fn main() -> Result<()> {
             last = Some(out);
         }
         let out = last.ok_or_else(|| anyhow::anyhow!("no run"))?;
+        let (mut sc_best, mut sc_cpu) = (f64::INFINITY, f64::INFINITY);
+        for _ in 0..args.reps.max(1) {
+            let c0 = cpu_seconds();
+            let t0 = Instant::now();
+            let sc = scatter(&corr, &vis, &out, &ScatterOptions::default())?;
+            sc_best = sc_best.min(t0.elapsed().as_secs_f64());
+            if let (Some(a), Some(b)) = (c0, cpu_seconds()) {
+                sc_cpu = sc_cpu.min(b - a);
+            }
+            std::hint::black_box(sc.observations);
+        }
         let tracks = out.tracks.len();
         let views: f64 = out.tracks.iter().map(|t| t.num_views as f64).sum::<f64>() / tracks.max(1) as f64;
         println!(
-            "| {n} | {tracks} | {views:.2} | {best:.3} | {:.0} | {best_cpu:.2} | {:.0} | {} |",
+            "| {n} | {tracks} | {views:.2} | {best:.3} | {:.0} | {best_cpu:.2} | {:.0} | {} | {sc_best:.3} | {sc_cpu:.2} |",
             tracks as f64 / best,
             tracks as f64 / best_cpu,
             out.counts()[4]
