@@ -152,6 +152,8 @@ fn smallest_eigenvector_dense(m: &Sym4) -> [f64; 4] {
 
 /// Inverse iteration; `None` when it does not converge within
 /// [`INVERSE_ITERATION_MAX_STEPS`] steps to [`INVERSE_ITERATION_TOL`].
+/// The negated comparisons are deliberate: a NaN pivot or norm must fall back.
+#[allow(clippy::neg_cmp_op_on_partial_ord)]
 #[inline]
 fn inverse_iteration(m: &Sym4) -> Option<[f64; 4]> {
     let trace = m[0] + m[4] + m[7] + m[9];

@@ -238,9 +238,9 @@ fn bad_input_nan_matches_points_and_images_are_skipped() {
     let mut m = s.matches.clone();
     let hw = s.dims.hw();
     for k in (0..hw).step_by(7) {
-        let i = (1 * s.dims.n + 0) * hw + k; // t = 1, s = 0
+        let i = s.dims.n * hw + k; // t = 1, s = 0
         m.pred_matches[2 * i] = f32::NAN;
-        m.pred_scores[i + hw] = f32::NAN; // t = 1, s = 1 is the diagonal: next pair instead
+        m.pred_scores[2 * s.dims.n * hw + k] = f32::NAN; // t = 2, s = 0
     }
     let mut ff = s.ff.clone();
     for p in (0..s.dims.pixels()).step_by(5) {

@@ -19,8 +19,11 @@ const MAX_DAMPING_GROWTH: f64 = 1e32;
 /// Lower / upper clamp of the Marquardt scaling `diag(JᵀWJ)` (Ceres' `min/max_lm_diagonal`).
 const MIN_LM_DIAGONAL: f64 = 1e-6;
 const MAX_LM_DIAGONAL: f64 = 1e32;
-/// Problems with fewer observations than this run sequentially (rayon overhead dominates).
-const PARALLEL_MIN_OBSERVATIONS: usize = 4096;
+/// Observations per work chunk (chunks of whole points). The chunking depends only on the
+/// problem, never on the thread count, and partial sums are combined in chunk order: results are
+/// identical with any number of threads and with `parallel = false`. Problems of at most this
+/// many observations form one chunk and run sequentially (rayon overhead dominates).
+const CHUNK_OBSERVATIONS: usize = 4096;
 /// `t_1` counts as zero (pure rotation: scale gauge left free) when its largest component is
 /// below this fraction of the scene extent.
 const PURE_ROTATION_REL: f64 = 1e-9;
@@ -47,6 +50,8 @@ struct Layout {
     fixed: Vec<usize>,
     /// Contiguous point ranges processed by one task.
     chunks: Vec<(usize, usize)>,
+    /// Process the chunks with rayon (`BaOptions::parallel` and more than one chunk).
+    parallel: bool,
     marquardt: bool,
 }
 
@@ -192,15 +197,9 @@ fn build_layout(problem: &BaProblem, options: &BaOptions, state: &State) -> Layo
             fixed.push(6 + 3 + t1.iamax());
         }
     }
-    // Chunks balanced by observation count.
-    let n_obs = obs_view.len();
-    let n_chunks = if options.parallel && n_obs >= PARALLEL_MIN_OBSERVATIONS {
-        (rayon::current_num_threads() * 4).max(1)
-    } else {
-        1
-    };
+    // Chunks of about CHUNK_OBSERVATIONS observations (independent of the thread count).
     let mut chunks = Vec::new();
-    let target = n_obs.div_ceil(n_chunks).max(1);
+    let target = CHUNK_OBSERVATIONS;
     let mut start = 0;
     for j in 0..point_ids.len() {
         if pt_start[j + 1] - pt_start[start] >= target || j + 1 == point_ids.len() {
@@ -221,6 +220,7 @@ fn build_layout(problem: &BaProblem, options: &BaOptions, state: &State) -> Layo
         loss: problem.loss,
         nc: 6 * n + n_cams * nf,
         fixed,
+        parallel: options.parallel && chunks.len() > 1,
         chunks,
         marquardt: options.damping == Damping::Marquardt,
     }
@@ -323,7 +323,7 @@ fn evaluate(l: &Layout, s: &State) -> Option<f64> {
         }
         cost.is_finite().then_some(cost)
     };
-    let parts: Vec<Option<f64>> = if l.chunks.len() > 1 {
+    let parts: Vec<Option<f64>> = if l.parallel {
         l.chunks.par_iter().map(chunk_cost).collect()
     } else {
         l.chunks.iter().map(chunk_cost).collect()
@@ -401,7 +401,7 @@ fn linearize<const D: usize>(l: &Layout, s: &State) -> Option<Linearization<D>> 
         }
         Some(out)
     };
-    let parts: Vec<Option<LinChunk<D>>> = if l.chunks.len() > 1 {
+    let parts: Vec<Option<LinChunk<D>>> = if l.parallel {
         l.chunks.par_iter().map(chunk_lin).collect()
     } else {
         l.chunks.iter().map(chunk_lin).collect()
@@ -519,7 +519,7 @@ fn damped_step<const D: usize>(l: &Layout, lin: &Linearization<D>, mu: f64) -> O
         }
         Some(out)
     };
-    let parts: Vec<Option<SchurChunk<D>>> = if l.chunks.len() > 1 {
+    let parts: Vec<Option<SchurChunk<D>>> = if l.parallel {
         l.chunks.par_iter().map(chunk_schur).collect()
     } else {
         l.chunks.iter().map(chunk_schur).collect()
@@ -611,7 +611,7 @@ fn damped_step<const D: usize>(l: &Layout, lin: &Linearization<D>, mu: f64) -> O
             })
             .collect()
     };
-    let dp: Vec<Vector3<f64>> = if l.chunks.len() > 1 {
+    let dp: Vec<Vector3<f64>> = if l.parallel {
         l.chunks.par_iter().flat_map_iter(back).collect()
     } else {
         l.chunks.iter().flat_map(back).collect()
