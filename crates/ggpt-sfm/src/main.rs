@@ -10,7 +10,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use ggpt_core::Cameras;
 use ggpt_sfm::ba::{BaOptions, CameraModel, LossFunction};
-use ggpt_sfm::input::{cameras_from_flat, read_ff, read_matches};
+use ggpt_sfm::input::{cameras_from_flat, read_inputs};
 use ggpt_sfm::masks::Preset;
 use ggpt_sfm::output::write_outputs;
 use ggpt_sfm::pipeline::{SfmConfig, run_sfm_correspondences};
@@ -217,10 +217,9 @@ fn run(args: RunArgs) -> Result<()> {
         spinner.set_style(s);
     }
     spinner.enable_steady_tick(std::time::Duration::from_millis(120));
-    spinner.set_message(format!("reading feed-forward outputs {}", args.ff.display()));
-    let ff = read_ff(&args.ff).with_context(|| format!("reading --ff {}", args.ff.display()))?;
-    spinner.set_message(format!("reading and converting matches {}", args.matches.display()));
-    let m = read_matches(&args.matches, ff.dims).with_context(|| format!("reading --matches {}", args.matches.display()))?;
+    spinner.set_message(format!("reading feed-forward outputs {} and matches {}", args.ff.display(), args.matches.display()));
+    let (ff, m) = read_inputs(&args.ff, &args.matches)
+        .with_context(|| format!("reading --ff {} / --matches {}", args.ff.display(), args.matches.display()))?;
     spinner.finish_and_clear();
     tracing::info!(views = ff.dims.n, h = ff.dims.h, w = ff.dims.w, matchers = ?m.names, seconds = t0.elapsed().as_secs_f64(), "inputs read");
     let fixed = match &args.cameras {

@@ -131,3 +131,33 @@ fn cli_default_ba_reproduces_upstream_costs_and_errors() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("README.md"), "{err}");
 }
+
+/// `ggpt-sfm run --ff DIR --matches DIR` on a `ggpt-synth` scene directory (read once), the
+/// documented synthetic-scene command of docs/sfm.md; same inputs as reading both separately.
+#[test]
+fn cli_on_a_synthetic_scene_directory() {
+    use ggpt_sfm::input::{read_ff, read_inputs, read_matches};
+    let cfg = ggpt_synth::SynthConfig { views: 3, width: 56, height: 42, seed: 9, ..Default::default() };
+    let scene = ggpt_synth::generate(&cfg).unwrap().scene;
+    let tmp = tempfile::tempdir().unwrap();
+    let sdir = tmp.path().join("scene");
+    ggpt_core::io::scene_dir::write_scene(&sdir, &scene).unwrap();
+    let (ff, m) = read_inputs(&sdir, &sdir).unwrap();
+    let ff2 = read_ff(&sdir).unwrap();
+    let m2 = read_matches(&sdir, ff2.dims).unwrap();
+    assert_eq!((ff.dims, &ff.images, &ff.ff), (ff2.dims, &ff2.images, &ff2.ff));
+    assert_eq!(m.names, m2.names);
+    assert_eq!(m.sets.len(), 2);
+    assert!(m.sets.iter().zip(&m2.sets).all(|(a, b)| a.matches == b.matches && a.scores == b.scores));
+    assert_eq!(m.rank_scores, m2.rank_scores);
+    let out = tmp.path().join("out");
+    let o = Command::new(env!("CARGO_BIN_EXE_ggpt-sfm")).args(["run", "--no-progress", "--ff"]).arg(&sdir).arg("--matches").arg(&sdir).arg("--out").arg(&out).output().unwrap();
+    assert!(o.status.success(), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    let s = summary(&out);
+    assert_eq!(s["ba"]["success"], true);
+    assert_eq!(s["matchers"], 2);
+    assert_eq!(s["ranking"], "given");
+    let st = StFile::open(&out.join("sfm_dlt_outputs.safetensors")).unwrap();
+    assert_eq!(st.f32("points").unwrap().shape, vec![3, 42, 56, 3]);
+    assert!(st.bool("point_masks").unwrap().data.iter().any(|&b| b));
+}
