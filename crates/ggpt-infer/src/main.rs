@@ -1,9 +1,12 @@
 //! `ggpt-infer`: run the GGPT network.
 //!
 //! Subcommands:
+//! * `run` — whole-scene refinement of a scene directory (SfM first when the scene has only
+//!   feed-forward outputs and matches), with export, evaluation and error maps (`docs/inference.md`);
+//! * `demo` — synthetic scene -> SfM -> refinement with the shipped model -> AUC table;
 //! * `chunk` — run the network on prepared chunk records (safetensors in, safetensors out).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
@@ -13,6 +16,16 @@ use ggpt_model::device::device_from_name;
 use ggpt_model::infer::prepare_chunks;
 use ggpt_model::weights::load_checkpoint;
 use ggpt_model::{Ggpt, GgptConfig};
+use ggpt_infer::demo::{DemoOptions, run_demo};
+use ggpt_infer::evaluation::format_table;
+use ggpt_infer::model_load::{SHIPPED_MODEL_DIR, load_model, resolve_model};
+use ggpt_infer::pipeline::{RunOptions, RunReport, run_scene};
+use ggpt_infer::refiner::BurnRefiner;
+use ggpt_infer::rss::{StageLog, StageTiming};
+use ggpt_scene::driver::RefineOptions;
+use ggpt_scene::export::{ColmapExportOptions, ExportOptions};
+use ggpt_scene::fusion::FusionMode;
+use ggpt_sfm::masks::Preset;
 use tracing::info;
 
 /// GGPT inference.
@@ -25,6 +38,15 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// Refine a whole scene: reads a scene directory (project format, official
+    /// `ff_outputs.bin` + `sfm_dlt_outputs.bin` [+ `gt.bin`], or `images/` + `ff.npz` +
+    /// `matches/` [+ `sfm.npz`]); runs the SfM stage first when the scene has no SfM result;
+    /// writes refined points (safetensors, npy), PLY, COLMAP, config/meta JSON, and with ground
+    /// truth an evaluation JSON and per-view error maps into `--out`.
+    Run(RunArgs),
+    /// Synthetic end-to-end demo: generates a scene with ggpt-synth, runs SfM and refinement
+    /// with the shipped model (`models/ggpt-synth-small/`), prints the AUC table before/after.
+    Demo(DemoArgs),
     /// Run the network on chunk records: reads `chunk{c}/ff_pts`, `ff_pts_conf`, `geo_pts`,
     /// `geo_msks` (normalised chunk coordinates) and writes `chunk{c}/ff_pts_out`,
     /// `ff_pts_conf_out`, `geo_pts_out`, `geo_pts_conf_out`, `tokens_xyz_out`, `tokens_conf_out`.
@@ -63,6 +85,254 @@ struct ChunkArgs {
     batched: bool,
 }
 
+/// Options shared by `run` and `demo`.
+#[derive(Args, Debug)]
+struct CommonArgs {
+    /// Compute device: `cpu` (fastest CPU backend), `ndarray`, `flex` or `wgpu`.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// CPU threads for the backends (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Fusion of overlapping chunks: `mean` (official plain mean) or `confidence`
+    /// (confidence-weighted mean, an extension).
+    #[arg(long, default_value = "mean", value_parser = ["mean", "confidence"])]
+    fusion: String,
+    /// PLY confidence filter: keep pixels with confidence >= this quantile of all confidences.
+    #[arg(long, default_value_t = ggpt_scene::export::DEFAULT_CONF_QUANTILE)]
+    conf_quantile: f64,
+    /// Maximum number of points in the PLY files (seeded uniform subset).
+    #[arg(long, default_value_t = ggpt_scene::export::DEFAULT_MAX_POINTS)]
+    max_points: usize,
+    /// Token budget of one network forward (several chunks per forward up to this; a larger
+    /// chunk runs alone). Bounds the memory.
+    #[arg(long, default_value_t = ggpt_scene::driver::DEFAULT_MAX_TOKENS_PER_FORWARD)]
+    max_tokens_per_forward: usize,
+    /// SfM threshold preset when the SfM stage runs: `demo`, `benchmark` or `many-views`.
+    #[arg(long, default_value = "demo")]
+    sfm_preset: String,
+    /// With no DLT point at all (empty guidance), export the unrefined feed-forward points
+    /// (confidence 0) instead of failing.
+    #[arg(long)]
+    allow_unrefined: bool,
+    /// Write the COLMAP model as text instead of binary.
+    #[arg(long)]
+    colmap_text: bool,
+    /// Skip the per-view PNG error maps (written only when the scene has ground truth).
+    #[arg(long)]
+    no_error_maps: bool,
+    /// Upper end of the error-map colour scale (cm).
+    #[arg(long, default_value_t = ggpt_infer::error_maps::DEFAULT_ERROR_MAP_MAX_CM)]
+    error_map_max_cm: f64,
+    /// No progress bars.
+    #[arg(long)]
+    quiet: bool,
+}
+
+/// Options of `ggpt-infer run`.
+#[derive(Args, Debug)]
+struct RunArgs {
+    /// Scene directory.
+    #[arg(long)]
+    scene: PathBuf,
+    /// Weights: official `.pth` / `.safetensors`, a project `.bpk`, or a model folder holding
+    /// `model.safetensors` (+ `model_config.json`).
+    #[arg(long)]
+    weights: PathBuf,
+    /// Model configuration JSON (default: `model_config.json` next to the weights).
+    #[arg(long, conflicts_with = "preset")]
+    model_config: Option<PathBuf>,
+    /// Built-in configuration: `released`, `small` or `tiny`.
+    #[arg(long)]
+    preset: Option<String>,
+    /// Output folder.
+    #[arg(long)]
+    out: PathBuf,
+    /// Seed of RANSAC, SfM and export subsampling (default 42); when given, it also replaces
+    /// the per-scene chunk seed crc32(scene name).
+    #[arg(long)]
+    seed: Option<u64>,
+    #[command(flatten)]
+    common: CommonArgs,
+}
+
+/// Options of `ggpt-infer demo`.
+#[derive(Args, Debug)]
+struct DemoArgs {
+    /// Number of views.
+    #[arg(long, default_value_t = 8)]
+    views: usize,
+    /// Seed of the scene generator, RANSAC, SfM and export.
+    #[arg(long, default_value_t = 42)]
+    seed: u64,
+    /// Scene family: `room` or `object`.
+    #[arg(long, default_value = "room", value_parser = ["room", "object"])]
+    kind: String,
+    /// Feed-forward width (multiple of 14).
+    #[arg(long, default_value_t = 518)]
+    width: usize,
+    /// Feed-forward height (multiple of 14).
+    #[arg(long, default_value_t = 392)]
+    height: usize,
+    /// Output folder (the scene goes to `<out>/scene`).
+    #[arg(long, default_value = "ggpt_demo")]
+    out: PathBuf,
+    /// Weights file or model folder (default: the shipped `models/ggpt-synth-small/`).
+    #[arg(long, default_value = SHIPPED_MODEL_DIR)]
+    weights: PathBuf,
+    /// Model configuration JSON (default: `model_config.json` next to the weights).
+    #[arg(long, conflicts_with = "preset")]
+    model_config: Option<PathBuf>,
+    /// Built-in configuration instead of a file: `released`, `small` or `tiny`.
+    #[arg(long)]
+    preset: Option<String>,
+    #[command(flatten)]
+    common: CommonArgs,
+}
+
+fn configure_threads(threads: usize) -> Result<()> {
+    if threads > 0 {
+        // SAFETY: called before any other thread of this process exists (the thread pools of
+        // the backends are created lazily afterwards); matrixmultiply reads it once.
+        unsafe { std::env::set_var("MATMUL_NUM_THREADS", threads.to_string()) };
+        rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().context("configuring the thread pool")?;
+    }
+    Ok(())
+}
+
+fn run_options(c: &CommonArgs, seed: u64, chunk_seed: Option<u64>) -> Result<RunOptions> {
+    if !(0.0..=1.0).contains(&c.conf_quantile) {
+        bail!("--conf-quantile {} must be in [0, 1]", c.conf_quantile);
+    }
+    if c.max_tokens_per_forward == 0 {
+        bail!("--max-tokens-per-forward must be positive");
+    }
+    let refine = RefineOptions {
+        seed,
+        chunk_seed,
+        max_tokens_per_forward: c.max_tokens_per_forward,
+        fusion: if c.fusion == "confidence" { FusionMode::ConfidenceWeighted } else { FusionMode::Mean },
+        allow_unrefined: c.allow_unrefined,
+        ..RefineOptions::default()
+    };
+    let export = ExportOptions {
+        conf_quantile: c.conf_quantile,
+        max_points: c.max_points,
+        seed,
+        colmap: Some(ColmapExportOptions { text: c.colmap_text, ..ColmapExportOptions::default() }),
+        ..ExportOptions::default()
+    };
+    Ok(RunOptions {
+        refine,
+        export,
+        sfm_preset: Preset::parse(&c.sfm_preset)?,
+        evaluate: true,
+        error_maps: !c.no_error_maps,
+        error_map_max_cm: c.error_map_max_cm,
+        progress: !c.quiet,
+    })
+}
+
+fn print_stages(stages: &[StageTiming]) {
+    println!("{:<20} {:>10} {:>14}", "stage", "seconds", "peak RSS MiB");
+    for s in stages {
+        let m = s.peak_rss_mib.map_or("-".to_string(), |m| format!("{m:.0}"));
+        println!("{:<20} {:>10.3} {:>14}", s.stage, s.seconds, m);
+    }
+}
+
+fn print_report(r: &RunReport) {
+    if let Some(e) = &r.evaluation {
+        println!("{}", format_table(e));
+    }
+    let covered = r.refined.covered.iter().filter(|&&c| c).count();
+    println!(
+        "refined {} chunks in {} forwards ({} tokens), {covered} of {} pixels covered{}",
+        r.refined.chunks.len(),
+        r.refined.forwards,
+        r.refined.total_tokens,
+        r.refined.dims.pixels(),
+        if r.refined.unrefined { " (UNREFINED: no DLT point)" } else if r.refined.no_chunk_fallback { " (no chunk accepted: aligned feed-forward points)" } else { "" }
+    );
+    print_stages(&r.stages);
+    println!("outputs in {}:", r.out_dir.display());
+    for f in r.export.files.iter().map(String::as_str).chain(["refined.safetensors", "config.json", "meta.json"]) {
+        println!("  {}", r.out_dir.join(f).display());
+    }
+    if r.evaluation.is_some() {
+        println!("  {}", r.out_dir.join("evaluation.json").display());
+        println!("  {}/view_*.png (image | feed-forward error | refined error)", r.out_dir.join("error_maps").display());
+    }
+}
+
+fn run_run(args: RunArgs) -> Result<()> {
+    configure_threads(args.common.threads)?;
+    let opts = run_options(&args.common, args.seed.unwrap_or(ggpt_scene::driver::DEFAULT_SEED), args.seed)?;
+    let mut log = StageLog::new();
+    log.start("load model");
+    let spec = resolve_model(&args.weights, args.model_config.as_deref(), args.preset.as_deref())?;
+    let device = device_from_name(&args.common.device)?;
+    let model = load_model(&spec, &device).with_context(|| format!("loading weights {}", spec.weights.display()))?;
+    let mut refiner = BurnRefiner::new(model, spec.config.clone(), device)?.with_rss_stages(true);
+    log.start("load scene");
+    let mut scene = load_scene(&args.scene)?;
+    log.finish();
+    info!("scene {} ({} views, {}x{})", scene.name, scene.dims.n, scene.dims.w, scene.dims.h);
+    let config = serde_json::json!({
+        "command": "run",
+        "scene": args.scene,
+        "weights": spec.weights,
+        "model_config_origin": spec.origin,
+        "model_config": spec.config,
+        "device": args.common.device,
+        "refine": opts.refine,
+        "export": opts.export,
+        "sfm_preset": args.common.sfm_preset,
+        "error_maps": opts.error_maps,
+        "error_map_max_cm": opts.error_map_max_cm,
+    });
+    let meta = serde_json::json!({
+        "ggpt_infer_version": env!("CARGO_PKG_VERSION"),
+        "backend": args.common.device,
+        "dtype": "f32",
+        "seed": opts.refine.seed,
+    });
+    let report = run_scene(&mut scene, &mut refiner, &opts, &args.out, &config, meta, &mut log)
+        .with_context(|| format!("refining scene {}", args.scene.display()))?;
+    print_report(&report);
+    Ok(())
+}
+
+fn load_scene(dir: &Path) -> Result<ggpt_core::Scene> {
+    if !dir.is_dir() {
+        bail!("scene directory not found: {}", dir.display());
+    }
+    ggpt_core::io::scene_dir::read_scene(dir).with_context(|| format!("reading scene {}", dir.display()))
+}
+
+fn run_demo_cmd(args: DemoArgs) -> Result<()> {
+    configure_threads(args.common.threads)?;
+    let opts = DemoOptions {
+        views: args.views,
+        seed: args.seed,
+        kind: if args.kind == "object" { ggpt_synth::SceneKind::Object } else { ggpt_synth::SceneKind::Room },
+        width: args.width,
+        height: args.height,
+        out: args.out.clone(),
+        weights: args.weights.clone(),
+        model_config: args.model_config.clone(),
+        preset: args.preset.clone(),
+        device: args.common.device.clone(),
+        run: run_options(&args.common, args.seed, None)?,
+    };
+    let mut log = StageLog::new();
+    let report = run_demo(&opts, &mut log)?;
+    println!("GGPT demo: synthetic {} scene, {} views at {}x{}, model {}", args.kind, args.views, args.width, args.height, report.weights.display());
+    print_report(&report.run);
+    println!("  {} (the generated scene; rerun: ggpt-infer run --scene {} --weights {} --out DIR)", report.scene_dir.display(), report.scene_dir.display(), report.weights.display());
+    Ok(())
+}
+
 fn main() -> Result<()> {
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
@@ -74,19 +344,13 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Chunk(args) => run_chunk(args),
+        Command::Run(args) => run_run(args),
+        Command::Demo(args) => run_demo_cmd(args),
     }
 }
 
 fn run_chunk(args: ChunkArgs) -> Result<()> {
-    if args.threads > 0 {
-        // SAFETY: called before any other thread of this process exists (the thread pools of
-        // the backends are created lazily afterwards); matrixmultiply reads it once.
-        unsafe { std::env::set_var("MATMUL_NUM_THREADS", args.threads.to_string()) };
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(args.threads)
-            .build_global()
-            .context("configuring the thread pool")?;
-    }
+    configure_threads(args.threads)?;
     let cfg = match (&args.model_config, &args.preset) {
         (Some(path), _) => GgptConfig::from_json_file(path)?,
         (None, Some(name)) => GgptConfig::preset(name)?,

@@ -1,0 +1,22 @@
+//! `ggpt-infer` library: whole-scene GGPT inference with the Burn network.
+//!
+//! * [`refiner`]: [`refiner::BurnRefiner`], the network as a `ggpt_scene::ChunkRefiner`
+//!   (several chunks per forward within a token budget, eval mode, one forward alive at a time);
+//! * [`model_load`]: weights / configuration resolution, the shipped model folder;
+//! * [`pipeline`]: [`pipeline::run_scene`] — SfM when needed, refinement, export, evaluation;
+//! * [`evaluation`]: before / after metrics; [`error_maps`]: per-view PNG error maps;
+//! * [`demo`]: the synthetic end-to-end demo; [`rss`]: per-stage wall time and peak memory.
+//!
+//! Frames and units: refined points in the SfM frame (scene units); evaluation in the GT frame
+//! (metres, errors in cm); pixels in ff resolution with the pixel-centre convention.
+
+pub mod demo;
+pub mod error;
+pub mod error_maps;
+pub mod evaluation;
+pub mod model_load;
+pub mod pipeline;
+pub mod refiner;
+pub mod rss;
+
+pub use error::{InferError, Result};
