@@ -102,7 +102,7 @@ mod tests {
 
     #[test]
     fn turbo_endpoints_and_clamping() {
-        assert_eq!(turbo(0.0), [34, 23, 27]);
+        assert_eq!(turbo(0.0), [35, 23, 27]); // 255 x (0.1357, 0.0914, 0.1067)
         let red = turbo(1.0);
         assert!(red[0] > 100 && red[2] < 30, "{red:?}");
         let mid = turbo(0.5);
