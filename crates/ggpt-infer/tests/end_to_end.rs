@@ -46,3 +46,60 @@ fn tiny_scene_end_to_end_ndarray() {
         assert!(out.join(f).is_file(), "{f} missing");
     }
 }
+
+fn tiny_refiner() -> BurnRefiner {
+    let device = device_from_name("ndarray").unwrap();
+    BurnRefiner::new(Ggpt::new(&GgptConfig::tiny(), &device), GgptConfig::tiny(), device).unwrap()
+}
+
+fn tiny_scene_with_sfm() -> ggpt_core::Scene {
+    let mut scene = generate(&SynthConfig { views: 4, width: 70, height: 56, seed: 7, matches: true, ..SynthConfig::default() }).unwrap().scene;
+    ggpt_infer::pipeline::ensure_sfm(&mut scene, ggpt_sfm::masks::Preset::Demo, 42, false).unwrap();
+    scene
+}
+
+#[test]
+fn bad_inputs_give_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |scene: &mut ggpt_core::Scene, opts: &RunOptions| {
+        run_scene(scene, &mut tiny_refiner(), opts, &dir.path().join("o"), &serde_json::json!({}), serde_json::json!({}), &mut StageLog::new())
+    };
+    let base = tiny_scene_with_sfm();
+    // Empty guidance: no DLT point at all.
+    let mut s = base.clone();
+    if let Some(sfm) = s.sfm.as_mut() {
+        sfm.mask.iter_mut().for_each(|m| *m = false);
+        sfm.points.iter_mut().for_each(|v| *v = 0.0);
+        sfm.points_success = false;
+    }
+    let e = run(&mut s.clone(), &RunOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("no DLT point"), "{e}");
+    let mut opts = RunOptions::default();
+    opts.refine.allow_unrefined = true;
+    let r = run(&mut s, &opts).unwrap();
+    assert!(r.refined.unrefined && r.refined.conf.iter().all(|&c| c == 0.0));
+    assert_eq!(r.refined.points, s.ff.as_ref().unwrap().points);
+    // Mismatched view counts.
+    let mut s = base.clone();
+    if let Some(sfm) = s.sfm.as_mut() {
+        sfm.cameras.cam_from_world.pop();
+    }
+    let e = run(&mut s, &RunOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("mismatched view counts"), "{e}");
+    // NaN in the feed-forward points.
+    let mut s = base.clone();
+    if let Some(ff) = s.ff.as_mut() {
+        ff.points[7] = f32::NAN;
+    }
+    let e = run(&mut s, &RunOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("non-finite") && e.contains("ff.points") && e.contains("index 7"), "{e}");
+    // Neither SfM nor matches.
+    let mut s = base.clone();
+    s.sfm = None;
+    s.matches.clear();
+    let e = run(&mut s, &RunOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("neither an SfM result nor dense matches"), "{e}");
+    // Missing weights.
+    let e = resolve_model(&dir.path().join("missing.safetensors"), None, Some("tiny")).unwrap_err().to_string();
+    assert!(e.contains("weights not found") && e.contains("missing.safetensors"), "{e}");
+}
