@@ -16,10 +16,13 @@
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::activation::softmax;
+use burn::tensor::module::attention;
+use burn::tensor::ops::AttentionModuleOptions;
 use burn::tensor::{Device, Tensor};
 
-use crate::ops::gather_rows;
+use crate::ops::{gather_rows, is_cpu_device};
 use crate::prepared::AttnIndex;
+use crate::profile;
 
 /// Upper bound on the floats of one score tensor `[W, H, L, L]` (128 MiB of f32).
 pub const SCORE_BUDGET_FLOATS: usize = 32 * 1024 * 1024;
@@ -47,27 +50,58 @@ impl WindowAttention {
 
     /// `x [N, C]` (already LayerNorm-ed) `-> [N, C]` using the windows of one order row.
     pub fn forward(&self, x: Tensor<2>, index: &AttnIndex) -> Tensor<2> {
+        self.forward_profiled(x, index, "attn")
+    }
+
+    /// [`Self::forward`], timing its parts under `{stage}.attn.{qkv,core,proj}` when
+    /// [`crate::profile`] is on.
+    ///
+    /// On a CPU device without autodiff (inference) the core is Burn's fused
+    /// `module::attention` (flex: flash attention with online softmax, no `[W, H, L, L]`
+    /// score tensor); otherwise the explicit `softmax(q k^T s) v` that autodiff differentiates.
+    pub fn forward_profiled(&self, x: Tensor<2>, index: &AttnIndex, stage: &str) -> Tensor<2> {
         let [_, c] = x.dims();
         let h = self.num_heads;
         let d = c / h;
         let scale = (d as f64).powf(-0.5);
         let device = x.device();
+        let fused = !device.is_autodiff() && is_cpu_device(&device);
         let mut outs = Vec::new();
         for group in &index.groups {
             let l = group.len;
             let per_window = h * l * l;
-            let step = (SCORE_BUDGET_FLOATS / per_window.max(1)).max(1);
+            // The fused kernel needs no score buffer: only bound the gathered rows.
+            let step = if fused {
+                (SCORE_BUDGET_FLOATS / (l * 3 * c).max(1)).max(1)
+            } else {
+                (SCORE_BUDGET_FLOATS / per_window.max(1)).max(1)
+            };
             let mut w0 = 0;
             while w0 < group.num_windows {
                 let nw = step.min(group.num_windows - w0);
                 let idx = group.gather.clone().narrow(0, w0 * l, nw * l);
                 // qkv is row-wise: project only the gathered rows (no [N, 3C] buffer).
-                let rows = self.qkv.forward(gather_rows(x.clone(), idx)).reshape([nw, l, 3, h, d]);
-                let part = |i: usize| rows.clone().narrow(2, i, 1).reshape([nw, l, h, d]).swap_dims(1, 2);
-                let (q, k, v) = (part(0), part(1), part(2));
-                let scores = q.mul_scalar(scale).matmul(k.swap_dims(2, 3));
-                let attn = softmax(scores, 3);
-                let o = attn.matmul(v).swap_dims(1, 2).reshape([nw * l, c]);
+                let rows = profile::scope(
+                    || format!("{stage}.attn.qkv"),
+                    || self.qkv.forward(gather_rows(x.clone(), idx)).reshape([nw, l, 3, h, d]),
+                );
+                let o = profile::scope(
+                    || format!("{stage}.attn.core"),
+                    || {
+                        // [3, W, H, L, d]: one permutation, then q, k, v are views.
+                        let qkv = rows.permute([2, 0, 3, 1, 4]);
+                        let part = |i: usize| qkv.clone().narrow(0, i, 1).reshape([nw, h, l, d]);
+                        let (q, k, v) = (part(0), part(1), part(2));
+                        let o = if fused {
+                            let opts = AttentionModuleOptions { scale: Some(scale), softcap: None, is_causal: false };
+                            attention(q, k, v, None, None, opts)
+                        } else {
+                            let scores = q.mul_scalar(scale).matmul(k.swap_dims(2, 3));
+                            softmax(scores, 3).matmul(v)
+                        };
+                        o.swap_dims(1, 2).reshape([nw * l, c])
+                    },
+                );
                 outs.push(o);
                 w0 += nw;
             }
@@ -80,6 +114,6 @@ impl WindowAttention {
             },
             _ => Tensor::cat(outs, 0),
         };
-        self.proj.forward(gather_rows(all, index.take.clone()))
+        profile::scope(|| format!("{stage}.attn.proj"), || self.proj.forward(gather_rows(all, index.take.clone())))
     }
 }

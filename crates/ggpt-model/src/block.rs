@@ -18,6 +18,7 @@ use crate::gelu::gelu;
 use crate::norm::layer_norm;
 use crate::ops::map_row_blocks;
 use crate::prepared::PreparedLevel;
+use crate::profile;
 use crate::recorder::Recorder;
 use crate::sparse_conv::SubmConv3d;
 
@@ -90,18 +91,24 @@ impl Block {
 
     /// `x, x_conv [N, C] -> [N, C]`; records `{name}.{cpe_conv_out,cpe_out,attn_out,mlp_out,out}`.
     pub fn forward(&self, x: Tensor<2>, x_conv: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> Tensor<2> {
-        let conv = self.cpe.conv.forward(x_conv, &level.conv);
+        // Profile key: the stage (`enc0`, `dec3`, ...).
+        let stage = name.split('.').next().unwrap_or(name);
+        let conv = profile::scope(|| format!("{stage}.conv"), || self.cpe.conv.forward(x_conv, &level.conv));
         rec.record(|| format!("{name}.cpe_conv_out"), &conv);
-        let cpe = self.cpe.norm.forward(self.cpe.linear.forward(conv));
+        let cpe = profile::scope(|| format!("{stage}.cpe_linear_ln"), || self.cpe.norm.forward(self.cpe.linear.forward(conv)));
         rec.record(|| format!("{name}.cpe_out"), &cpe);
         let x1 = x + cpe;
-        let attn = self.attn.forward(self.norm1.forward(x1.clone()), &level.attn[self.order_row]);
+        let normed = profile::scope(|| format!("{stage}.ln1"), || self.norm1.forward(x1.clone()));
+        let attn = self.attn.forward_profiled(normed, &level.attn[self.order_row], stage);
         rec.record(|| format!("{name}.attn_out"), &attn);
         let x2 = x1 + self.drop_path.forward(attn);
         let hidden = self.mlp.fc1.weight.dims()[1];
-        let mlp = map_row_blocks(x2.clone(), hidden, |rows| self.mlp.forward(self.norm2.forward(rows)));
+        let mlp = profile::scope(
+            || format!("{stage}.ln2_mlp"),
+            || map_row_blocks(x2.clone(), hidden, |rows| self.mlp.forward(self.norm2.forward(rows))),
+        );
         rec.record(|| format!("{name}.mlp_out"), &mlp);
-        let x3 = x2 + self.drop_path.forward(mlp);
+        let x3 = profile::scope(|| format!("{stage}.residual"), || x2 + self.drop_path.forward(mlp));
         rec.record(|| format!("{name}.out"), &x3);
         x3
     }

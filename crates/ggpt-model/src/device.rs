@@ -22,6 +22,28 @@ pub fn device_from_name(name: &str) -> Result<Device> {
     }
 }
 
+/// Sizes the process-wide rayon pool used by the CPU backends (flex: gemm, attention and
+/// element-wise kernels; ndarray: `multi-threads`) and by host planning: `threads = 0` keeps
+/// rayon's default (all cores, or `RAYON_NUM_THREADS`).
+///
+/// Call once at start-up, before the first tensor operation: rayon's global pool can be sized
+/// only before its first use. ndarray's matrix products (matrixmultiply) read
+/// `MATMUL_NUM_THREADS` instead; binaries set that variable as well.
+pub fn init_cpu_threads(threads: usize) -> Result<()> {
+    if threads == 0 {
+        return Ok(());
+    }
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build_global()
+        .map_err(|e| ModelError::Threads(format!("cannot size the CPU thread pool to {threads} threads: {e}")))
+}
+
+/// Threads the CPU backends use now (the rayon global pool's size).
+pub fn cpu_threads() -> usize {
+    rayon::current_num_threads()
+}
+
 /// Silences an unused-import warning when wgpu is off.
 #[allow(dead_code)]
 fn _kind(_: DeviceKind) {}

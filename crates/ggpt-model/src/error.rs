@@ -63,6 +63,9 @@ pub enum ModelError {
     /// An unknown device name.
     #[error("unknown or unavailable device '{0}' (expected cpu, ndarray, flex or wgpu)")]
     Device(String),
+    /// The CPU thread pool could not be sized (it was already initialised).
+    #[error("CPU thread pool: {0}")]
+    Threads(String),
 }
 
 /// Result alias of this crate.

@@ -24,6 +24,7 @@ pub mod ops;
 pub mod plan;
 pub mod pooling;
 pub mod prepared;
+pub mod profile;
 pub mod recorder;
 pub mod sparse_conv;
 pub mod unpooling;

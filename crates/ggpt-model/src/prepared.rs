@@ -36,6 +36,28 @@ pub struct ConvIndex {
     pub group_members: Option<Tensor<1, Int>>,
     /// `[M]` group of each group entry.
     pub group_ids: Option<Tensor<1, Int>>,
+    /// The same tables split by tap, without the "no neighbour" slots (network.md §6,
+    /// docs/network.md "Sparse convolution on CPU"): only taps with at least one pair.
+    pub taps: Vec<TapIndex>,
+    /// Occupied slots / `27 N` (1 = every token has all 27 neighbours).
+    pub occupancy: f64,
+}
+
+/// The `(target, source)` pairs of one kernel tap, sources as rows of `X_ext`.
+#[derive(Debug, Clone)]
+pub struct TapIndex {
+    /// Tap `f` (`W_f = weight[:, f / 9, (f / 3) % 3, f % 3, :]`).
+    pub tap: usize,
+    /// Number of pairs `P_f`.
+    pub len: usize,
+    /// `[P_f]` row of `X_ext` (token, group sum) feeding each pair, ascending targets.
+    pub source: Tensor<1, Int>,
+    /// `[P_f]` output row of each pair (each target at most once per tap).
+    pub target: Tensor<1, Int>,
+    /// `target == 0..N` (every token has this neighbour): the scatter is a plain add.
+    pub full: bool,
+    /// `full` and `source == 0..N` (the centre tap without duplicates): no gather either.
+    pub identity: bool,
 }
 
 /// Window groups of equal length of one order row.
@@ -221,19 +243,29 @@ pub fn conv_index_host(n: usize, table: &ConvTable) -> std::result::Result<(Vec<
         if tap.target.len() != tap.source.len() {
             return Err(format!("tap {f}: {} targets but {} sources", tap.target.len(), tap.source.len()));
         }
-        let mut by_target: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+        // Pairs sorted by (target, source): runs of equal targets are the duplicate groups.
+        let mut pairs: Vec<(usize, usize)> = Vec::with_capacity(tap.target.len());
         for (&t, &s) in tap.target.iter().zip(&tap.source) {
             if t >= n || s >= n {
                 return Err(format!("tap {f}: pair ({t}, {s}) out of range {n}"));
             }
-            by_target.entry(t).or_default().push(s);
+            pairs.push((t, s));
         }
-        for (t, mut sources) in by_target {
+        if !pairs.is_sorted() {
+            pairs.sort_unstable();
+        }
+        let mut i = 0;
+        while i < pairs.len() {
+            let t = pairs[i].0;
+            let mut j = i + 1;
+            while j < pairs.len() && pairs[j].0 == t {
+                j += 1;
+            }
             let slot = t * NUM_TAPS + f;
-            if sources.len() == 1 {
-                im2col[slot] = sources[0];
+            if j == i + 1 {
+                im2col[slot] = pairs[i].1;
             } else {
-                sources.sort_unstable();
+                let sources: Vec<usize> = pairs[i..j].iter().map(|&(_, s)| s).collect();
                 let next = groups.len();
                 let g = *groups.entry(sources.clone()).or_insert_with(|| {
                     for &s in &sources {
@@ -244,6 +276,7 @@ pub fn conv_index_host(n: usize, table: &ConvTable) -> std::result::Result<(Vec<
                 });
                 group_slots.push((slot, g));
             }
+            i = j;
         }
     }
     let num_groups = groups.len();
@@ -267,7 +300,44 @@ fn conv_index(l: usize, n: usize, table: &ConvTable, device: &Device) -> Result<
     } else {
         (None, None)
     };
-    Ok(ConvIndex { num_tokens: n, im2col: index_tensor(&im2col, device), num_groups, group_members, group_ids })
+    let zero_row = n + num_groups;
+    let mut taps = Vec::new();
+    let mut occupied = 0usize;
+    for f in 0..NUM_TAPS {
+        let mut source = Vec::new();
+        let mut target = Vec::new();
+        for t in 0..n {
+            let v = im2col[t * NUM_TAPS + f];
+            if v != zero_row {
+                source.push(v);
+                target.push(t);
+            }
+        }
+        if source.is_empty() {
+            continue;
+        }
+        occupied += source.len();
+        let full = source.len() == n;
+        let identity = full && source.iter().enumerate().all(|(t, &s)| s == t);
+        taps.push(TapIndex {
+            tap: f,
+            len: source.len(),
+            source: index_tensor(&source, device),
+            target: index_tensor(&target, device),
+            full,
+            identity,
+        });
+    }
+    let occupancy = if n == 0 { 0.0 } else { occupied as f64 / (NUM_TAPS * n) as f64 };
+    Ok(ConvIndex {
+        num_tokens: n,
+        im2col: index_tensor(&im2col, device),
+        num_groups,
+        group_members,
+        group_ids,
+        taps,
+        occupancy,
+    })
 }
 
 /// Host form of [`AttnIndex`]: `(groups as (gather, windows, len), take)`.

@@ -19,7 +19,7 @@ const GUIDANCE_FRACTION: f32 = 0.3;
 
 fn usage() -> ! {
     eprintln!(
-        "usage: bench_forward [--tokens N[,N...]] [--device cpu|ndarray|flex|wgpu] [--threads T] [--preset released|small|tiny] [--repeat R]"
+        "usage: bench_forward [--tokens N[,N...]] [--device cpu|ndarray|flex|wgpu] [--threads T] [--preset released|small|tiny] [--repeat R] [--profile]"
     );
     std::process::exit(2)
 }
@@ -68,6 +68,7 @@ fn main() {
     let mut threads = 0usize;
     let mut preset = "released".to_string();
     let mut repeat = 1usize;
+    let mut profile = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut val = || args.next().unwrap_or_else(|| usage());
@@ -79,14 +80,15 @@ fn main() {
             "--threads" => threads = val().parse().unwrap_or_else(|_| usage()),
             "--preset" => preset = val(),
             "--repeat" => repeat = val().parse().unwrap_or_else(|_| usage()),
+            "--profile" => profile = true,
             _ => usage(),
         }
     }
     if threads > 0 {
         // SAFETY: no other thread exists yet.
         unsafe { std::env::set_var("MATMUL_NUM_THREADS", threads.to_string()) };
-        if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global() {
-            eprintln!("thread pool: {e}");
+        if let Err(e) = ggpt_model::device::init_cpu_threads(threads) {
+            eprintln!("{e}");
         }
     }
     let cfg = GgptConfig::preset(&preset).unwrap_or_else(|e| {
@@ -97,6 +99,7 @@ fn main() {
         eprintln!("{e}");
         std::process::exit(2)
     });
+    ggpt_model::profile::set_enabled(profile);
     let model = Ggpt::new(&cfg, &device);
     println!("| tokens | pixels | device | threads | plan s | upload s | forward s | peak RSS MiB |");
     println!("|---|---|---|---|---|---|---|---|");
@@ -124,6 +127,11 @@ fn main() {
             let conf = out.tokens_conf.to_data();
             let t_fwd = t2.elapsed().as_secs_f64();
             drop(conf);
+            if profile {
+                for e in ggpt_model::profile::take_report() {
+                    eprintln!("profile {:<24} {:>8.3} s {:>5} calls", e.name, e.seconds, e.calls);
+                }
+            }
             println!(
                 "| {} | {k} | {device_name} | {} | {t_plan:.2} | {t_up:.2} | {t_fwd:.2} | {:.0} |",
                 batch.num_tokens,
