@@ -1,0 +1,173 @@
+//! Validation: chunk-level point accuracy during training, and the whole-scene refinement of
+//! held-out scenes through `ggpt_scene::refine_scene` with the official metrics
+//! (`pipeline.md` §10.2: robust Sim(3) of the prediction onto GT, AUC@τ cm).
+
+use burn::module::Module;
+use burn::tensor::Device;
+use ggpt_core::metrics::{auc_from_recalls, recalls_strict};
+use ggpt_core::{Scene, SfmResult};
+use ggpt_model::infer::infer_chunks;
+use ggpt_model::plan::ChunkInput;
+use ggpt_model::{Ggpt, GgptConfig};
+use ggpt_scene::driver::{ChunkRefiner, RefineOptions, RefinedChunk, refine_scene};
+use ggpt_scene::record::ChunkRecord;
+use ggpt_scene::SceneError;
+use rand::SeedableRng;
+use serde::{Deserialize, Serialize};
+
+use crate::chunkset::{SceneEntry, TrainChunk};
+use crate::error::{Result, TrainError};
+use crate::loss::{HostTargets, loss};
+
+/// Chunk-level validation result: AUC of the refined and of the input (aligned feed-forward)
+/// points against the aligned GT, errors converted to cm with the scene's metres-per-unit
+/// (no re-alignment: the chunk frame is the SfM frame).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ChunkValidation {
+    /// Chunks evaluated.
+    pub chunks: usize,
+    /// Validation loss (mean over forwards).
+    pub loss: f64,
+    /// AUC@5 cm of the input points (percent).
+    pub input_auc5: f64,
+    /// AUC@10 cm of the input points (percent).
+    pub input_auc10: f64,
+    /// AUC@5 cm of the refined points (percent).
+    pub refined_auc5: f64,
+    /// AUC@10 cm of the refined points (percent).
+    pub refined_auc10: f64,
+}
+
+fn aucs(errors_cm: &[f64]) -> Result<(f64, f64)> {
+    let rec = recalls_strict(errors_cm, 10);
+    Ok((100.0 * auc_from_recalls(&rec, 5)?, 100.0 * auc_from_recalls(&rec, 10)?))
+}
+
+/// Runs the network in evaluation mode (BatchNorm running statistics, no drop path) on
+/// `chunks` in forwards of at most `max_tokens` tokens and measures the point accuracy.
+pub fn validate_chunks(model: &Ggpt, cfg: &GgptConfig, chunks: &[TrainChunk], scenes: &[SceneEntry], device: &Device, max_tokens: usize) -> Result<ChunkValidation> {
+    let model = model.valid().fork(device);
+    let (mut e_in, mut e_out) = (Vec::new(), Vec::new());
+    let (mut loss_sum, mut forwards) = (0.0, 0usize);
+    let mut start = 0;
+    while start < chunks.len() {
+        let mut end = start + 1;
+        let mut tokens = chunks[start].num_tokens();
+        while end < chunks.len() && tokens + chunks[end].num_tokens() <= max_tokens {
+            tokens += chunks[end].num_tokens();
+            end += 1;
+        }
+        let group: Vec<&TrainChunk> = chunks[start..end].iter().collect();
+        let inputs: Vec<ChunkInput> = group.iter().map(|c| c.to_input()).collect();
+        let batch = ggpt_model::infer::prepare_chunks(cfg, &inputs, device)?;
+        let out = model.forward(&batch);
+        let parts = loss(out.tokens_xyz.clone(), out.tokens_conf.clone(), &HostTargets::new(&group).upload(device));
+        loss_sum += ggpt_model::model::read_f32(&parts.total.into_data(), "val loss")?.first().copied().unwrap_or(f32::NAN) as f64;
+        forwards += 1;
+        for (c, o) in group.iter().zip(out.to_chunks(&batch)?) {
+            let mpu = scenes.get(c.scene).map(|s| s.metres_per_unit).ok_or_else(|| TrainError::Invalid(format!("chunk of unknown scene {}", c.scene)))?;
+            let to_cm = c.radius * mpu * 100.0;
+            for i in 0..c.len() {
+                if !c.gt_msk[i] {
+                    continue;
+                }
+                let g = c.gt_pts[i];
+                let d = |p: [f32; 3]| (((p[0] - g[0]) as f64).powi(2) + ((p[1] - g[1]) as f64).powi(2) + ((p[2] - g[2]) as f64).powi(2)).sqrt() * to_cm;
+                e_in.push(d(c.ff_pts[i]));
+                e_out.push(d(o.ff_pts_out[i]));
+            }
+        }
+        start = end;
+    }
+    let (i5, i10) = aucs(&e_in)?;
+    let (r5, r10) = aucs(&e_out)?;
+    Ok(ChunkValidation {
+        chunks: chunks.len(),
+        loss: loss_sum / forwards.max(1) as f64,
+        input_auc5: i5,
+        input_auc10: i10,
+        refined_auc5: r5,
+        refined_auc10: r10,
+    })
+}
+
+/// [`ChunkRefiner`] running a [`Ggpt`] in evaluation mode on one device.
+pub struct ModelRefiner {
+    /// The network (evaluation mode).
+    pub model: Ggpt,
+    /// Its configuration.
+    pub cfg: GgptConfig,
+    /// Device of the forwards.
+    pub device: Device,
+}
+
+impl ModelRefiner {
+    /// Wraps `model` (switched to evaluation mode on `device`).
+    pub fn new(model: &Ggpt, cfg: &GgptConfig, device: &Device) -> Self {
+        Self { model: model.valid().fork(device), cfg: cfg.clone(), device: device.clone() }
+    }
+}
+
+impl ChunkRefiner for ModelRefiner {
+    fn refine(&mut self, chunks: &[ChunkRecord]) -> std::result::Result<Vec<RefinedChunk>, SceneError> {
+        let inputs: Vec<ChunkInput> = chunks
+            .iter()
+            .map(|r| ChunkInput {
+                ff_pts: r.ff_pts.clone(),
+                ff_conf: r.ff_conf.clone(),
+                geo_pts: r.geo_pts.iter().zip(&r.geo_msk).map(|(p, &m)| if m { *p } else { [0.0; 3] }).collect(),
+                geo_msk: r.geo_msk.clone(),
+            })
+            .collect();
+        let outs = infer_chunks(&self.model, &self.cfg, &inputs, &self.device).map_err(|e| SceneError::Invalid(format!("network: {e}")))?;
+        Ok(outs.into_iter().map(|o| RefinedChunk { points: o.ff_pts_out, conf: o.ff_pts_conf_out }).collect())
+    }
+}
+
+/// Whole-scene result of one held-out scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SceneEvaluation {
+    /// Scene name.
+    pub name: String,
+    /// AUC@5 cm of the feed-forward input ("init", unaligned; percent).
+    pub ff_auc5: f64,
+    /// AUC@10 cm of the feed-forward input.
+    pub ff_auc10: f64,
+    /// AUC@5 cm of the refined points ("pred").
+    pub refined_auc5: f64,
+    /// AUC@10 cm of the refined points.
+    pub refined_auc10: f64,
+    /// AUC@5 of the DLT points on `M_s ∧ V` (for reference).
+    pub sfm_auc5: f64,
+    /// Fraction of GT pixels covered by at least one chunk.
+    pub covered: f64,
+    /// Chunks.
+    pub chunks: usize,
+}
+
+/// Refines a held-out scene with `refiner` (`pipeline.md` §3-§8) and evaluates the input and
+/// the refined points against GT (`pipeline.md` §10.2, seed 42 for the RANSAC).
+pub fn evaluate_scene(scene: &Scene, sfm: &SfmResult, refiner: &mut dyn ChunkRefiner, opts: &RefineOptions) -> Result<SceneEvaluation> {
+    let gt = scene.gt.as_ref().ok_or_else(|| TrainError::Invalid(format!("scene {}: no GT", scene.name)))?;
+    let ff = scene.ff.as_ref().ok_or_else(|| TrainError::Invalid(format!("scene {}: no feed-forward", scene.name)))?;
+    let refined = refine_scene(scene, sfm, refiner, opts)?;
+    let err = ggpt_scene::prealign::DEFAULT_ALIGN_MAX_ERROR;
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(42);
+    let init = ggpt_core::metrics::points::point_metrics(&ff.points, &gt.points, &gt.mask, None, err, &mut rng)?;
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(42);
+    let pred = ggpt_core::metrics::points::point_metrics(&refined.points, &gt.points, &gt.mask, None, err, &mut rng)?;
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(42);
+    let sfm_m = ggpt_core::metrics::points::point_metrics(&sfm.points, &gt.points, &gt.mask, Some(&sfm.mask), err, &mut rng)?;
+    let n_gt = gt.mask.iter().filter(|&&m| m).count().max(1);
+    let cov = gt.mask.iter().zip(&refined.covered).filter(|(g, c)| **g && **c).count();
+    Ok(SceneEvaluation {
+        name: scene.name.clone(),
+        ff_auc5: init.metrics.auc_5,
+        ff_auc10: init.metrics.auc_10,
+        refined_auc5: pred.metrics.auc_5,
+        refined_auc10: pred.metrics.auc_10,
+        sfm_auc5: sfm_m.metrics.auc_5,
+        covered: cov as f64 / n_gt as f64,
+        chunks: refined.chunks.len(),
+    })
+}

@@ -1,0 +1,632 @@
+//! `ggpt-train`: prepare chunk sets, train the GGPT network, evaluate and export it.
+//!
+//! Without arguments it builds a small synthetic chunk set and trains the tiny configuration
+//! on it for a few steps (a demonstration of the whole loop, seconds to a few minutes on CPU).
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use burn::module::Module;
+use clap::{Args, Parser, Subcommand};
+use ggpt_model::{Ggpt, GgptConfig};
+use ggpt_scene::chunker::ChunkParams;
+use ggpt_scene::driver::RefineOptions;
+use ggpt_train::chunkset::{ChunkSet, ChunkSetWriter, SceneEntry, Split};
+use ggpt_train::evaluate::{ModelRefiner, SceneEvaluation, evaluate_scene};
+use ggpt_train::prepare::{PrepareParams, SynthSpec, official_scene, prepare_scene, synthetic_scene};
+use ggpt_train::trainer::{self, LrSchedule, MetricsLine, RunContext, TrainOptions};
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// Train GGPT on curated chunk sets (synthetic or official per-sequence data).
+#[derive(Parser, Debug)]
+#[command(name = "ggpt-train", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+    /// Output directory of the no-argument demonstration run.
+    #[arg(long, default_value = "ggpt-train-default")]
+    out: PathBuf,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Build a chunk set (sharded safetensors + manifest) from synthetic scenes and/or official
+    /// per-sequence directories.
+    Prepare(PrepareArgs),
+    /// Train on a chunk set.
+    Train(TrainArgs),
+    /// Evaluate a model on the held-out (val) scenes of a chunk set: whole-scene refinement
+    /// through the scene pipeline, AUC@5/10 cm of the feed-forward input vs the refined points.
+    Eval(EvalArgs),
+    /// Export a checkpoint as official `model.safetensors` + `model_config.json`.
+    Export(ExportArgs),
+    /// Plot `metrics.jsonl` as a PNG training curve.
+    Plot(PlotArgs),
+}
+
+/// Chunk sampler options shared by `prepare` and `eval`.
+#[derive(Args, Debug, Clone)]
+struct ChunkingArgs {
+    /// Chunk half-size as a fraction of the scene radius R (pipeline.md §5).
+    #[arg(long, default_value_t = 0.2)]
+    chunk_size: f64,
+    /// Pixel cap of a chunk (the cube shrinks by 0.9 while above; official 400000).
+    #[arg(long, default_value_t = 400_000)]
+    max_pixels: usize,
+    /// Minimum DLT pixels of an accepted chunk (official 100).
+    #[arg(long, default_value_t = 100)]
+    min_dlt: usize,
+    /// Minimum pixels of an accepted chunk (official 10000).
+    #[arg(long, default_value_t = 10_000)]
+    min_pixels: usize,
+}
+
+impl ChunkingArgs {
+    fn params(&self) -> ChunkParams {
+        ChunkParams { chunk_size: self.chunk_size, max_pixels: self.max_pixels, min_dlt: self.min_dlt, min_pixels: self.min_pixels, ..ChunkParams::default() }
+    }
+}
+
+#[derive(Args, Debug)]
+struct PrepareArgs {
+    /// Output chunk-set directory.
+    #[arg(long)]
+    out: PathBuf,
+    /// Synthetic training scenes to generate (seeds first_seed, first_seed + 1, ...).
+    #[arg(long, default_value_t = 0)]
+    synthetic_train: usize,
+    /// Synthetic validation (held-out) scenes, seeds following the training seeds.
+    #[arg(long, default_value_t = 0)]
+    synthetic_val: usize,
+    /// First synthetic seed.
+    #[arg(long, default_value_t = 1000)]
+    first_seed: u64,
+    /// Views per synthetic scene.
+    #[arg(long, default_value_t = 4)]
+    views: usize,
+    /// Synthetic ff width (multiple of 14).
+    #[arg(long, default_value_t = 154)]
+    width: usize,
+    /// Synthetic ff height (multiple of 14).
+    #[arg(long, default_value_t = 112)]
+    height: usize,
+    /// Synthetic scene kinds, alternated by seed (`room`, `object`).
+    #[arg(long, value_delimiter = ',', default_value = "room,object")]
+    kinds: Vec<String>,
+    /// Official per-sequence directories (gt.bin, ff_outputs.bin, sfm_dlt_outputs.bin).
+    #[arg(long, num_args = 1..)]
+    official: Vec<PathBuf>,
+    /// Fraction of the official directories held out for validation (split by scene, the last ones).
+    #[arg(long, default_value_t = 0.1)]
+    val_fraction: f64,
+    /// Chunks drawn per scene.
+    #[arg(long, default_value_t = 16)]
+    chunks_per_scene: usize,
+    /// Chunks per shard.
+    #[arg(long, default_value_t = 64)]
+    shard_chunks: usize,
+    /// Seed of the RANSAC and chunk draws (combined with each scene name).
+    #[arg(long, default_value_t = 42)]
+    seed: u64,
+    #[command(flatten)]
+    chunking: ChunkingArgs,
+}
+
+#[derive(Args, Debug, Clone)]
+struct TrainArgs {
+    /// Chunk-set directory (from `prepare`).
+    #[arg(long)]
+    data: PathBuf,
+    /// Output directory (metrics.jsonl, config.json, checkpoints/).
+    #[arg(long)]
+    out: PathBuf,
+    /// Model configuration: preset `released`, `small`, `tiny`, or a model-config JSON file.
+    #[arg(long, default_value = "small")]
+    config: String,
+    /// Maximum drop-path rate (network.md §11.3; overrides the config's 0.3).
+    #[arg(long)]
+    drop_path: Option<f64>,
+    /// Total optimisation steps.
+    #[arg(long, default_value_t = 1000)]
+    steps: u64,
+    /// Chunks per forward (paper: 24).
+    #[arg(long, default_value_t = 4)]
+    batch_size: usize,
+    /// Adam learning rate (paper: 1e-4).
+    #[arg(long, default_value_t = 1e-4)]
+    lr: f64,
+    /// Learning-rate schedule.
+    #[arg(long, value_enum, default_value_t = LrSchedule::Constant)]
+    lr_schedule: LrSchedule,
+    /// Linear warm-up steps of the cosine schedule.
+    #[arg(long, default_value_t = 0)]
+    warmup_steps: u64,
+    /// Clip the global gradient norm to this value (off by default).
+    #[arg(long)]
+    clip_grad_norm: Option<f64>,
+    /// Seed of initialisation, batches and drop path.
+    #[arg(long, default_value_t = 42)]
+    seed: u64,
+    /// Write a checkpoint every N steps (and always at exit).
+    #[arg(long, default_value_t = 100)]
+    save_every: u64,
+    /// Validate on held-out chunks every N steps (0: only at the end).
+    #[arg(long, default_value_t = 100)]
+    val_every: u64,
+    /// Validation chunks used (at most).
+    #[arg(long, default_value_t = 64)]
+    val_chunks: usize,
+    /// Token budget of one validation forward.
+    #[arg(long, default_value_t = 200_000)]
+    val_max_tokens: usize,
+    /// Checkpoints kept on disk.
+    #[arg(long, default_value_t = 3)]
+    keep_checkpoints: usize,
+    /// Compute device: `cpu` (fastest CPU backend), `ndarray`, `flex`, `wgpu`.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// Data-parallel replicas (local devices). Burn 0.22.1 implements gradient all-reduce only
+    /// for CUDA devices (see docs/training.md); other values than 1 are rejected on CPU / wgpu.
+    #[arg(long, default_value_t = 1)]
+    devices: usize,
+    /// Resume from the newest checkpoint in `--out` (or from this checkpoint directory).
+    #[arg(long, num_args = 0..=1, default_missing_value = "")]
+    resume: Option<PathBuf>,
+    /// Initialise from an official checkpoint (.pth / .safetensors / .bpk) for fine-tuning.
+    #[arg(long)]
+    init_from: Option<PathBuf>,
+    /// Write `model.safetensors` + `model_config.json` of the final model into this directory.
+    #[arg(long)]
+    export_to: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+struct EvalArgs {
+    /// Chunk-set directory whose val scenes are evaluated (synthetic scenes are regenerated
+    /// from their recorded spec, official ones read from their directory).
+    #[arg(long)]
+    data: PathBuf,
+    /// Model: a directory with model.safetensors + model_config.json, a checkpoint directory
+    /// (state.json + model.bpk), or a weight file with `--config`.
+    #[arg(long)]
+    model: PathBuf,
+    /// Model config (preset or JSON) when `--model` is a bare weight file.
+    #[arg(long)]
+    config: Option<String>,
+    /// Compute device.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// Token budget of one forward.
+    #[arg(long, default_value_t = 200_000)]
+    max_tokens_per_forward: usize,
+    /// Write the per-scene results here (JSON).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[command(flatten)]
+    chunking: ChunkingArgs,
+}
+
+#[derive(Args, Debug)]
+struct ExportArgs {
+    /// Checkpoint directory (state.json + model.bpk), or a run directory (newest checkpoint).
+    #[arg(long)]
+    checkpoint: PathBuf,
+    /// Output directory for model.safetensors + model_config.json.
+    #[arg(long)]
+    out_dir: PathBuf,
+}
+
+#[derive(Args, Debug)]
+struct PlotArgs {
+    /// metrics.jsonl of a run.
+    #[arg(long)]
+    metrics: PathBuf,
+    /// Output PNG.
+    #[arg(long)]
+    out: PathBuf,
+    /// Moving-average window of the training loss.
+    #[arg(long, default_value_t = 25)]
+    smooth: usize,
+}
+
+fn bar(len: u64, msg: &str) -> ProgressBar {
+    let pb = ProgressBar::new(len);
+    pb.set_style(
+        ProgressStyle::with_template("{prefix} [{elapsed_precise}] {bar:30} {pos}/{len} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    pb.set_prefix(msg.to_string());
+    pb.enable_steady_tick(Duration::from_millis(500));
+    pb
+}
+
+fn parse_kind(s: &str) -> Result<ggpt_synth::SceneKind> {
+    match s {
+        "room" => Ok(ggpt_synth::SceneKind::Room),
+        "object" => Ok(ggpt_synth::SceneKind::Object),
+        o => bail!("unknown scene kind '{o}' (room, object)"),
+    }
+}
+
+fn prepare(a: &PrepareArgs) -> Result<()> {
+    let params = PrepareParams { chunks_per_scene: a.chunks_per_scene, chunking: a.chunking.params(), seed: a.seed, ..PrepareParams::default() };
+    let provenance = serde_json::json!({
+        "tool": format!("ggpt-train {}", env!("CARGO_PKG_VERSION")),
+        "params": params,
+        "synthetic": {"train": a.synthetic_train, "val": a.synthetic_val, "first_seed": a.first_seed, "views": a.views,
+                      "width": a.width, "height": a.height, "kinds": a.kinds},
+        "official": a.official,
+    });
+    let mut w = ChunkSetWriter::new(&a.out, a.shard_chunks, provenance)?;
+    let kinds: Vec<ggpt_synth::SceneKind> = a.kinds.iter().map(|k| parse_kind(k)).collect::<Result<_>>()?;
+    if kinds.is_empty() {
+        bail!("--kinds is empty");
+    }
+    let n_syn = a.synthetic_train + a.synthetic_val;
+    let n_val_off = ((a.official.len() as f64) * a.val_fraction).round() as usize;
+    let total = n_syn + a.official.len();
+    if total == 0 {
+        bail!("nothing to prepare: give --synthetic-train/--synthetic-val and/or --official DIRS");
+    }
+    let pb = bar(total as u64, "prepare");
+    let mut counts = [0usize; 2];
+    for i in 0..n_syn {
+        let spec = SynthSpec { kind: kinds[i % kinds.len()], views: a.views, width: a.width, height: a.height, seed: a.first_seed + i as u64 };
+        let split = if i < a.synthetic_train { Split::Train } else { Split::Val };
+        let (scene, sfm) = synthetic_scene(&spec).with_context(|| format!("synthetic scene {spec:?}"))?;
+        let prep = prepare_scene(&scene, &sfm, &params).with_context(|| format!("preparing {}", scene.name))?;
+        let source = format!("synthetic:{}", serde_json::to_string(&spec)?);
+        add_scene(&mut w, &scene, split, prep, source, &mut counts)?;
+        pb.inc(1);
+    }
+    for (j, dir) in a.official.iter().enumerate() {
+        let split = if j + n_val_off >= a.official.len() { Split::Val } else { Split::Train };
+        let (scene, sfm) = official_scene(dir).with_context(|| format!("reading {}", dir.display()))?;
+        let prep = prepare_scene(&scene, &sfm, &params).with_context(|| format!("preparing {}", dir.display()))?;
+        add_scene(&mut w, &scene, split, prep, format!("official:{}", dir.display()), &mut counts)?;
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    let m = w.finish()?;
+    println!(
+        "chunk set {}: {} scenes, {} train chunks, {} val chunks, {} shards",
+        a.out.display(),
+        m.scenes.len(),
+        counts[0],
+        counts[1],
+        m.shards.len()
+    );
+    Ok(())
+}
+
+fn add_scene(w: &mut ChunkSetWriter, scene: &ggpt_core::Scene, split: Split, prep: ggpt_train::prepare::PreparedScene, source: String, counts: &mut [usize; 2]) -> Result<()> {
+    let idx = w.add_scene(SceneEntry {
+        name: scene.name.clone(),
+        split,
+        views: scene.dims.n,
+        height: scene.dims.h,
+        width: scene.dims.w,
+        metres_per_unit: prep.metres_per_unit,
+        source,
+    });
+    for mut c in prep.chunks {
+        c.scene = idx;
+        w.add_chunk(c)?;
+        counts[usize::from(split == Split::Val)] += 1;
+    }
+    Ok(())
+}
+
+fn model_config(spec: &str) -> Result<GgptConfig> {
+    let p = Path::new(spec);
+    if p.is_file() {
+        Ok(GgptConfig::from_json_file(p)?)
+    } else {
+        Ok(GgptConfig::preset(spec)?)
+    }
+}
+
+static STOP: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_sigint(_: libc::c_int) {
+    STOP.store(true, Ordering::SeqCst);
+}
+
+fn install_ctrl_c(flag: &Arc<AtomicBool>) {
+    // SAFETY: the handler only stores into an atomic (async-signal-safe).
+    unsafe {
+        libc::signal(libc::SIGINT, on_sigint as *const () as libc::sighandler_t);
+        libc::signal(libc::SIGTERM, on_sigint as *const () as libc::sighandler_t);
+    }
+    let f = flag.clone();
+    std::thread::spawn(move || {
+        loop {
+            if STOP.load(Ordering::SeqCst) {
+                f.store(true, Ordering::SeqCst);
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    });
+}
+
+fn train(a: &TrainArgs) -> Result<()> {
+    if a.devices != 1 {
+        bail!(
+            "--devices {}: Burn 0.22.1 performs the gradient all-reduce of distributed parameters only on CUDA devices \
+             (burn-backend-extension marks flex / ndarray as non-distributed and cubecl's wgpu/CPU runtimes panic in \
+             all_reduce); this build has no CUDA backend, so data-parallel training is unavailable (docs/training.md)",
+            a.devices
+        );
+    }
+    let data = ChunkSet::open(&a.data)?;
+    let device = ggpt_model::device::device_from_name(&a.device)?;
+    let ad = device.clone().autodiff();
+    let resume_dir = match &a.resume {
+        None => None,
+        Some(p) if p.as_os_str().is_empty() => {
+            let list = trainer::list_checkpoints(&a.out)?;
+            Some(list.last().map(|(_, d)| d.clone()).with_context(|| format!("--resume: no checkpoint in {}", a.out.display()))?)
+        }
+        Some(p) => Some(p.clone()),
+    };
+    let (model, optim, start, opts) = if let Some(dir) = resume_dir {
+        let (m, o, st) = trainer::load_checkpoint(&dir, &ad)?;
+        let mut opts = st.options.clone();
+        opts.steps = a.steps; // allow extending a run
+        tracing::info!("resumed from {} at step {}", dir.display(), st.step);
+        (m, o, st.step, opts)
+    } else {
+        let mut cfg = model_config(&a.config)?;
+        if let Some(dp) = a.drop_path {
+            cfg.drop_path = dp;
+        }
+        device.seed(a.seed);
+        let mut m = Ggpt::new(&cfg, &device);
+        if let Some(init) = &a.init_from {
+            m = ggpt_model::weights::load_checkpoint(m, init).with_context(|| format!("--init-from {}", init.display()))?;
+        }
+        let opts = TrainOptions {
+            model: cfg,
+            steps: a.steps,
+            batch_size: a.batch_size.max(1),
+            lr: a.lr,
+            lr_schedule: a.lr_schedule,
+            warmup_steps: a.warmup_steps,
+            clip_grad_norm: a.clip_grad_norm,
+            seed: a.seed,
+            save_every: a.save_every,
+            val_every: a.val_every,
+            val_chunks: a.val_chunks,
+            val_max_tokens: a.val_max_tokens,
+            keep_checkpoints: a.keep_checkpoints,
+        };
+        (m.fork(&ad).train(), trainer::adam(), 0, opts)
+    };
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let cfg_path = a.out.join("config.json");
+    let run_cfg = serde_json::json!({"options": opts, "data": a.data, "device": a.device, "init_from": a.init_from,
+        "parameters": ggpt_model::weights::num_trainable_params(&model),
+        "batchnorm": "batch statistics over all chunks of one forward (no micro-batching)"});
+    ggpt_core::io::atomic::write_atomic(&cfg_path, |w| w.write_all(serde_json::to_string_pretty(&run_cfg).unwrap_or_default().as_bytes()))?;
+    tracing::info!("training {} parameters on {} ({} steps from {start})", ggpt_model::weights::num_trainable_params(&model), a.device, opts.steps);
+    let stop = Arc::new(AtomicBool::new(false));
+    install_ctrl_c(&stop);
+    let pb = bar(opts.steps, "train");
+    pb.set_position(start);
+    let mut on_step = |l: &MetricsLine| {
+        pb.set_position(l.step);
+        pb.set_message(format!("loss {:.4} (conf {:.4}, id {:.4}) {:.2} chunks/s {:.0} tok/s", l.loss, l.loss_conf, l.loss_id, l.chunks_per_s, l.tokens_per_s));
+    };
+    let res = trainer::run(&opts, RunContext { out: &a.out, data: &data, device: ad, model, optim, start_step: start, stop, on_step: &mut on_step })?;
+    pb.finish_and_clear();
+    if res.interrupted {
+        println!("interrupted at step {}: checkpoint written to {}", res.steps, trainer::checkpoint_dir(&a.out, res.steps).display());
+    } else {
+        println!("trained {} steps; checkpoint {}", res.steps, trainer::checkpoint_dir(&a.out, res.steps).display());
+    }
+    if let Some(v) = &res.validation {
+        println!(
+            "held-out chunks: AUC@5 input {:.1} -> refined {:.1}; AUC@10 {:.1} -> {:.1} (val loss {:.4})",
+            v.input_auc5, v.refined_auc5, v.input_auc10, v.refined_auc10, v.loss
+        );
+    }
+    if let Some(dir) = &a.export_to {
+        std::fs::create_dir_all(dir)?;
+        ggpt_train::export::save_official_safetensors(&res.model, res.steps, &dir.join("model.safetensors"))?;
+        ggpt_train::export::save_model_config(&opts.model, &dir.join("model_config.json"))?;
+        println!("exported {}", dir.display());
+    }
+    Ok(())
+}
+
+use std::io::Write as _;
+
+fn load_model_any(path: &Path, config: Option<&str>, device: &burn::tensor::Device) -> Result<(Ggpt, GgptConfig)> {
+    if path.join("state.json").is_file() {
+        let (m, _, st) = trainer::load_checkpoint(path, device)?;
+        return Ok((m, st.options.model));
+    }
+    if path.is_dir() && !path.join("model.safetensors").is_file() {
+        let list = trainer::list_checkpoints(path)?;
+        if let Some((_, d)) = list.last() {
+            let (m, _, st) = trainer::load_checkpoint(d, device)?;
+            return Ok((m, st.options.model));
+        }
+    }
+    let (weights, cfg) = if path.is_dir() {
+        (path.join("model.safetensors"), GgptConfig::from_json_file(&path.join("model_config.json"))?)
+    } else {
+        (path.to_path_buf(), model_config(config.context("--config is required with a bare weight file")?)?)
+    };
+    let m = ggpt_model::weights::load_checkpoint(Ggpt::new(&cfg, device), &weights)?;
+    Ok((m, cfg))
+}
+
+fn eval(a: &EvalArgs) -> Result<()> {
+    let data = ChunkSet::open(&a.data)?;
+    let device = ggpt_model::device::device_from_name(&a.device)?;
+    let (model, cfg) = load_model_any(&a.model, a.config.as_deref(), &device)?;
+    let mut refiner = ModelRefiner::new(&model, &cfg, &device);
+    let opts = RefineOptions { chunking: a.chunking.params(), max_tokens_per_forward: a.max_tokens_per_forward, ..RefineOptions::default() };
+    let val: Vec<&SceneEntry> = data.manifest.scenes.iter().filter(|s| s.split == Split::Val).collect();
+    if val.is_empty() {
+        bail!("{}: no val scene", a.data.display());
+    }
+    let pb = bar(val.len() as u64, "eval");
+    let mut results: Vec<SceneEvaluation> = Vec::new();
+    for s in val {
+        let (scene, sfm) = if let Some(js) = s.source.strip_prefix("synthetic:") {
+            let spec: SynthSpec = serde_json::from_str(js).with_context(|| format!("scene {}: synthetic spec", s.name))?;
+            synthetic_scene(&spec)?
+        } else if let Some(dir) = s.source.strip_prefix("official:") {
+            official_scene(Path::new(dir))?
+        } else {
+            bail!("scene {}: unknown source '{}'", s.name, s.source);
+        };
+        let r = evaluate_scene(&scene, &sfm, &mut refiner, &opts).with_context(|| format!("evaluating {}", s.name))?;
+        pb.inc(1);
+        pb.println(format!(
+            "{:<28} ff AUC@5 {:5.1} AUC@10 {:5.1} | refined AUC@5 {:5.1} AUC@10 {:5.1} | DLT AUC@5 {:5.1} | covered {:.2} | {} chunks",
+            r.name, r.ff_auc5, r.ff_auc10, r.refined_auc5, r.refined_auc10, r.sfm_auc5, r.covered, r.chunks
+        ));
+        results.push(r);
+    }
+    pb.finish_and_clear();
+    let n = results.len() as f64;
+    let mean = |f: fn(&SceneEvaluation) -> f64| results.iter().map(f).sum::<f64>() / n;
+    let summary = serde_json::json!({
+        "scenes": results.len(),
+        "ff_auc5": mean(|r| r.ff_auc5), "ff_auc10": mean(|r| r.ff_auc10),
+        "refined_auc5": mean(|r| r.refined_auc5), "refined_auc10": mean(|r| r.refined_auc10),
+        "sfm_auc5": mean(|r| r.sfm_auc5),
+    });
+    println!(
+        "mean over {} held-out scenes: AUC@5 {:.1} -> {:.1} ({:+.1}), AUC@10 {:.1} -> {:.1} ({:+.1})",
+        results.len(),
+        mean(|r| r.ff_auc5),
+        mean(|r| r.refined_auc5),
+        mean(|r| r.refined_auc5) - mean(|r| r.ff_auc5),
+        mean(|r| r.ff_auc10),
+        mean(|r| r.refined_auc10),
+        mean(|r| r.refined_auc10) - mean(|r| r.ff_auc10)
+    );
+    if let Some(out) = &a.out {
+        let v = serde_json::json!({"summary": summary, "scenes": results, "model": a.model, "data": a.data});
+        ggpt_core::io::atomic::write_atomic(out, |w| w.write_all(serde_json::to_string_pretty(&v).unwrap_or_default().as_bytes()))?;
+    }
+    Ok(())
+}
+
+fn export(a: &ExportArgs) -> Result<()> {
+    let device = ggpt_model::device::device_from_name("cpu")?;
+    let dir = if a.checkpoint.join("state.json").is_file() {
+        a.checkpoint.clone()
+    } else {
+        trainer::list_checkpoints(&a.checkpoint)?.last().map(|(_, d)| d.clone()).with_context(|| format!("no checkpoint in {}", a.checkpoint.display()))?
+    };
+    let (model, _, st) = trainer::load_checkpoint(&dir, &device)?;
+    std::fs::create_dir_all(&a.out_dir)?;
+    let weights = a.out_dir.join("model.safetensors");
+    ggpt_train::export::save_official_safetensors(&model, st.step, &weights)?;
+    ggpt_train::export::save_model_config(&st.options.model, &a.out_dir.join("model_config.json"))?;
+    // strict reload check
+    ggpt_model::weights::load_checkpoint(Ggpt::new(&st.options.model, &device), &weights).context("strict reload of the export")?;
+    println!("exported step {} to {} (strict reload ok)", st.step, a.out_dir.display());
+    Ok(())
+}
+
+fn plot(a: &PlotArgs) -> Result<()> {
+    let text = std::fs::read_to_string(&a.metrics).with_context(|| format!("reading {}", a.metrics.display()))?;
+    let mut loss = Vec::new();
+    let mut val_in = Vec::new();
+    let mut val_out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let v: serde_json::Value = serde_json::from_str(line).with_context(|| format!("{} line {}", a.metrics.display(), i + 1))?;
+        let step = v["step"].as_f64().unwrap_or(f64::NAN);
+        match v["kind"].as_str() {
+            Some("train") => loss.push((step, v["loss"].as_f64().unwrap_or(f64::NAN))),
+            Some("val") => {
+                val_in.push((step, v["val"]["input_auc5"].as_f64().unwrap_or(f64::NAN)));
+                val_out.push((step, v["val"]["refined_auc5"].as_f64().unwrap_or(f64::NAN)));
+            }
+            _ => {}
+        }
+    }
+    use ggpt_train::plot::{Series, plot_png, smooth};
+    let e1 = plot_png(&a.out, &[Series { points: smooth(&loss, a.smooth), rgb: [200, 30, 30] }], 800, 300)?;
+    println!("{}: training loss (red, moving average {}), steps {:.0}..{:.0}, loss {:.4}..{:.4}", a.out.display(), a.smooth, e1.0, e1.1, e1.2, e1.3);
+    if !val_out.is_empty() {
+        let p2 = a.out.with_extension("val.png");
+        let e2 = plot_png(&p2, &[Series { points: val_in, rgb: [120, 120, 120] }, Series { points: val_out, rgb: [30, 90, 200] }], 800, 300)?;
+        println!("{}: held-out chunk AUC@5 input (grey) vs refined (blue), steps {:.0}..{:.0}, AUC {:.1}..{:.1}", p2.display(), e2.0, e2.1, e2.2, e2.3);
+    }
+    Ok(())
+}
+
+fn default_run(out: &Path) -> Result<()> {
+    println!("ggpt-train without arguments: building a small synthetic chunk set and training the tiny configuration");
+    println!("(see `ggpt-train --help` for the real commands)");
+    let data = out.join("chunkset");
+    let prep = PrepareArgs {
+        out: data.clone(),
+        synthetic_train: 3,
+        synthetic_val: 1,
+        first_seed: 1,
+        views: 3,
+        width: 98,
+        height: 70,
+        kinds: vec!["room".into(), "object".into()],
+        official: Vec::new(),
+        val_fraction: 0.0,
+        chunks_per_scene: 4,
+        shard_chunks: 64,
+        seed: 42,
+        chunking: ChunkingArgs { chunk_size: 0.2, max_pixels: 1500, min_dlt: 20, min_pixels: 200 },
+    };
+    let t = Instant::now();
+    prepare(&prep)?;
+    tracing::info!("prepared in {:.1} s", t.elapsed().as_secs_f64());
+    train(&TrainArgs {
+        data,
+        out: out.join("run"),
+        config: "tiny".into(),
+        drop_path: None,
+        steps: 20,
+        batch_size: 2,
+        lr: 1e-3,
+        lr_schedule: LrSchedule::Constant,
+        warmup_steps: 0,
+        clip_grad_norm: None,
+        seed: 42,
+        save_every: 10,
+        val_every: 10,
+        val_chunks: 8,
+        val_max_tokens: 200_000,
+        keep_checkpoints: 2,
+        device: "cpu".into(),
+        devices: 1,
+        resume: None,
+        init_from: None,
+        export_to: None,
+    })
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")))
+        .init();
+    let cli = Cli::parse();
+    match &cli.command {
+        None => default_run(&cli.out),
+        Some(Command::Prepare(a)) => prepare(a),
+        Some(Command::Train(a)) => train(a),
+        Some(Command::Eval(a)) => eval(a),
+        Some(Command::Export(a)) => export(a),
+        Some(Command::Plot(a)) => plot(a),
+    }
+}

@@ -1,0 +1,423 @@
+//! The training loop (`pipeline.md` §11.2-§11.4), hand-written on Burn autodiff.
+//!
+//! * Batch = `batch_size` chunks of distinct training scenes when available, all in one forward
+//!   (BatchNorm statistics over the whole batch, drop path active).
+//! * Adam with PyTorch's defaults (betas 0.9 / 0.999, eps 1e-8, no weight decay), constant
+//!   learning rate 1e-4 by default; optional linear warm-up + cosine decay and global-norm
+//!   gradient clipping.
+//! * Determinism: the batch of step `t` and the backend RNG (drop path) are both seeded from
+//!   `(seed, t)`, so a resumed run continues exactly (the "RNG state" is the step).
+//! * Checkpoints `checkpoints/step-XXXXXXXX/{model.bpk, optim.bpk, state.json}` are written into
+//!   a temporary directory and renamed (atomic); `--resume` picks the newest complete one.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::{Device, Tensor};
+use ggpt_model::plan::ChunkInput;
+use ggpt_model::{Ggpt, GgptConfig};
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+
+use crate::chunkset::{ChunkSet, SceneEntry, Split, TrainChunk};
+use crate::error::{Result, TrainError, io_err};
+use crate::evaluate::{ChunkValidation, validate_chunks};
+use crate::loss::{HostTargets, loss};
+
+/// Learning-rate schedule.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum LrSchedule {
+    /// Constant learning rate (paper default).
+    Constant,
+    /// Linear warm-up, then cosine decay to 0 at the last step.
+    Cosine,
+}
+
+/// Options of a training run (everything recorded in checkpoints and `config.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainOptions {
+    /// Network configuration.
+    pub model: GgptConfig,
+    /// Total optimisation steps.
+    pub steps: u64,
+    /// Chunks per forward.
+    pub batch_size: usize,
+    /// Adam learning rate.
+    pub lr: f64,
+    /// Schedule.
+    pub lr_schedule: LrSchedule,
+    /// Warm-up steps (cosine schedule).
+    pub warmup_steps: u64,
+    /// Global-norm gradient clipping threshold.
+    pub clip_grad_norm: Option<f64>,
+    /// Seed of batches, drop path and initialisation.
+    pub seed: u64,
+    /// Checkpoint period (steps).
+    pub save_every: u64,
+    /// Validation period (steps, 0 = only at the end).
+    pub val_every: u64,
+    /// Validation chunks used (at most).
+    pub val_chunks: usize,
+    /// Token budget of a validation forward.
+    pub val_max_tokens: usize,
+    /// Checkpoints kept.
+    pub keep_checkpoints: usize,
+}
+
+/// `state.json` of a checkpoint.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainState {
+    /// Completed optimisation steps.
+    pub step: u64,
+    /// Run options.
+    pub options: TrainOptions,
+    /// Description of the RNG state (batches and drop path are seeded per step from `seed`).
+    pub rng: String,
+    /// Chunk set the run trains on.
+    pub data: PathBuf,
+    /// Last validation.
+    pub last_validation: Option<ChunkValidation>,
+}
+
+/// One line of `metrics.jsonl`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MetricsLine {
+    /// Step (1-based: after this many updates).
+    pub step: u64,
+    /// `train` or `val`.
+    pub kind: String,
+    /// Loss.
+    pub loss: f64,
+    /// `L_conf` part.
+    pub loss_conf: f64,
+    /// `L_id` part.
+    pub loss_id: f64,
+    /// Learning rate of the step.
+    pub lr: f64,
+    /// Gradient global norm (before clipping).
+    pub grad_norm: f64,
+    /// Chunks per second of this step.
+    pub chunks_per_s: f64,
+    /// Tokens per second of this step.
+    pub tokens_per_s: f64,
+    /// Seconds since the run (or resume) started.
+    pub elapsed_s: f64,
+    /// Validation result (val lines).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub val: Option<ChunkValidation>,
+}
+
+/// Mixes the run seed and a step into a 64-bit seed (SplitMix64 finaliser).
+pub fn step_seed(seed: u64, step: u64, salt: u64) -> u64 {
+    let mut z = seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ salt.wrapping_mul(0xD1B5_4A32_D192_ED03);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Indices of the chunks of step `step`: `batch_size` distinct scenes (random order), one random
+/// chunk of each; scenes repeat only when there are fewer scenes than `batch_size`.
+pub fn batch_indices(by_scene: &[Vec<usize>], batch_size: usize, seed: u64, step: u64) -> Vec<usize> {
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(step_seed(seed, step, 1));
+    let scenes: Vec<usize> = (0..by_scene.len()).filter(|&s| !by_scene[s].is_empty()).collect();
+    let mut out = Vec::with_capacity(batch_size);
+    while out.len() < batch_size && !scenes.is_empty() {
+        let mut order = scenes.clone();
+        order.shuffle(&mut rng);
+        for s in order.into_iter().take(batch_size - out.len()) {
+            let list = &by_scene[s];
+            out.push(list[rng.random_range(0..list.len())]);
+        }
+    }
+    out
+}
+
+/// Learning rate of step `step` (0-based).
+pub fn learning_rate(o: &TrainOptions, step: u64) -> f64 {
+    match o.lr_schedule {
+        LrSchedule::Constant => o.lr,
+        LrSchedule::Cosine => {
+            if step < o.warmup_steps {
+                o.lr * (step + 1) as f64 / o.warmup_steps as f64
+            } else {
+                let span = o.steps.saturating_sub(o.warmup_steps).max(1) as f64;
+                let t = (step - o.warmup_steps) as f64 / span;
+                0.5 * o.lr * (1.0 + (std::f64::consts::PI * t.min(1.0)).cos())
+            }
+        }
+    }
+}
+
+/// Global L2 norm of the gradients of `model`'s parameters, and optional rescaling so that it
+/// is at most `max_norm` (PyTorch `clip_grad_norm_` semantics: factor `max / (norm + 1e-6)`).
+pub fn clip_global_norm(model: &Ggpt, grads: &mut GradientsParams, max_norm: Option<f64>) -> Result<f64> {
+    struct Sq<'a> {
+        grads: &'a GradientsParams,
+        parts: Vec<Tensor<1>>,
+    }
+    impl ModuleVisitor for Sq<'_> {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            if let Some(g) = self.grads.get::<D>(param.id) {
+                self.parts.push(g.square().sum());
+            }
+        }
+    }
+    struct Scale<'a> {
+        grads: &'a mut GradientsParams,
+        factor: f64,
+    }
+    impl ModuleVisitor for Scale<'_> {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            if let Some(g) = self.grads.remove::<D>(param.id) {
+                self.grads.register::<D>(param.id, g.mul_scalar(self.factor));
+            }
+        }
+    }
+    let mut sq = Sq { grads, parts: Vec::new() };
+    model.visit(&mut sq);
+    if sq.parts.is_empty() {
+        return Ok(0.0);
+    }
+    let total = Tensor::cat(sq.parts, 0).sum();
+    let norm = (ggpt_model::model::read_f32(&total.into_data(), "grad norm")?.first().copied().unwrap_or(0.0) as f64).sqrt();
+    if let Some(max) = max_norm
+        && norm > max
+    {
+        let mut s = Scale { grads, factor: max / (norm + 1e-6) };
+        model.visit(&mut s);
+    }
+    Ok(norm)
+}
+
+/// The Adam optimiser of `pipeline.md` §11.4 (PyTorch defaults, no weight decay).
+pub fn adam() -> ModuleOptimizer {
+    AdamConfig::new().with_beta_1(0.9).with_beta_2(0.999).with_epsilon(1e-8).init()
+}
+
+/// Scalar values of the loss parts of one step.
+#[derive(Debug, Clone, Copy)]
+pub struct StepLoss {
+    /// `L`.
+    pub total: f64,
+    /// `L_conf`.
+    pub conf: f64,
+    /// `L_id`.
+    pub id: f64,
+    /// Gradient norm before clipping.
+    pub grad_norm: f64,
+    /// Tokens of the forward.
+    pub tokens: usize,
+}
+
+/// One optimisation step on `chunks` (one forward). `device` must be an autodiff device.
+pub fn train_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig, chunks: &[&TrainChunk], lr: f64, clip: Option<f64>, device: &Device) -> Result<(Ggpt, StepLoss)> {
+    let inputs: Vec<ChunkInput> = chunks.iter().map(|c| c.to_input()).collect();
+    let batch = ggpt_model::infer::prepare_chunks(cfg, &inputs, device)?;
+    let out = model.forward(&batch);
+    let parts = loss(out.tokens_xyz, out.tokens_conf, &HostTargets::new(chunks).upload(device));
+    let vals = ggpt_model::model::read_f32(&Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0).into_data(), "loss")?;
+    let (total, conf, id) = (vals.first().copied().unwrap_or(f32::NAN), vals.get(1).copied().unwrap_or(f32::NAN), vals.get(2).copied().unwrap_or(f32::NAN));
+    if !total.is_finite() {
+        return Err(TrainError::Invalid(format!("non-finite loss {total} (L_conf {conf}, L_id {id})")));
+    }
+    let mut grads = GradientsParams::from_grads(parts.total.backward(), &model);
+    let grad_norm = clip_global_norm(&model, &mut grads, clip)?;
+    let model = optim.step(lr, model, grads);
+    Ok((model, StepLoss { total: total as f64, conf: conf as f64, id: id as f64, grad_norm, tokens: batch.num_tokens }))
+}
+
+/// Directory of the checkpoint of `step`.
+pub fn checkpoint_dir(out: &Path, step: u64) -> PathBuf {
+    out.join("checkpoints").join(format!("step-{step:08}"))
+}
+
+/// Writes a checkpoint atomically (temporary directory + rename) and prunes old ones.
+pub fn save_checkpoint(out: &Path, model: &Ggpt, optim: &ModuleOptimizer, state: &TrainState) -> Result<PathBuf> {
+    let root = out.join("checkpoints");
+    std::fs::create_dir_all(&root).map_err(io_err(&root))?;
+    let final_dir = checkpoint_dir(out, state.step);
+    let tmp = root.join(format!(".tmp-step-{:08}-{}", state.step, std::process::id()));
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(io_err(&tmp))?;
+    }
+    std::fs::create_dir_all(&tmp).map_err(io_err(&tmp))?;
+    let ck = |message: String| TrainError::Checkpoint { path: tmp.clone(), message };
+    ggpt_model::weights::save_burnpack(&model.valid(), &tmp.join("model.bpk"))?;
+    optim.save(tmp.join("optim.bpk")).map_err(|e| ck(format!("optimizer: {e:?}")))?;
+    let text = serde_json::to_string_pretty(state).map_err(|e| ck(e.to_string()))?;
+    std::fs::write(tmp.join("state.json"), text).map_err(io_err(tmp.join("state.json")))?;
+    if final_dir.exists() {
+        std::fs::remove_dir_all(&final_dir).map_err(io_err(&final_dir))?;
+    }
+    std::fs::rename(&tmp, &final_dir).map_err(io_err(&final_dir))?;
+    // prune
+    let mut all = list_checkpoints(out)?;
+    let keep = state.options.keep_checkpoints.max(1);
+    while all.len() > keep {
+        let (_, old) = all.remove(0);
+        let _ = std::fs::remove_dir_all(old);
+    }
+    Ok(final_dir)
+}
+
+/// Complete checkpoints of a run, oldest first.
+pub fn list_checkpoints(out: &Path) -> Result<Vec<(u64, PathBuf)>> {
+    let root = out.join("checkpoints");
+    let mut v = Vec::new();
+    if !root.is_dir() {
+        return Ok(v);
+    }
+    for e in std::fs::read_dir(&root).map_err(io_err(&root))? {
+        let e = e.map_err(io_err(&root))?;
+        let name = e.file_name().to_string_lossy().into_owned();
+        if let Some(n) = name.strip_prefix("step-").and_then(|s| s.parse::<u64>().ok())
+            && e.path().join("state.json").is_file()
+        {
+            v.push((n, e.path()));
+        }
+    }
+    v.sort();
+    Ok(v)
+}
+
+/// Loads a checkpoint directory: model (on `device`, training mode), optimizer, state.
+pub fn load_checkpoint(dir: &Path, device: &Device) -> Result<(Ggpt, ModuleOptimizer, TrainState)> {
+    let state_path = dir.join("state.json");
+    let text = std::fs::read_to_string(&state_path).map_err(io_err(&state_path))?;
+    let state: TrainState = serde_json::from_str(&text).map_err(|e| TrainError::Format { path: state_path.clone(), message: e.to_string() })?;
+    let plain = device.clone().without_autodiff();
+    let model = Ggpt::new(&state.options.model, &plain);
+    let model = ggpt_model::weights::load_burnpack(model, &dir.join("model.bpk"))?;
+    let optim = adam()
+        .load(dir.join("optim.bpk"))
+        .map_err(|e| TrainError::Checkpoint { path: dir.join("optim.bpk"), message: format!("{e:?}") })?;
+    Ok((model.fork(device).train(), optim, state))
+}
+
+/// Everything [`run`] needs besides the options.
+pub struct RunContext<'a> {
+    /// Output directory (metrics, checkpoints).
+    pub out: &'a Path,
+    /// Chunk set.
+    pub data: &'a ChunkSet,
+    /// Autodiff training device.
+    pub device: Device,
+    /// Initial model (fresh, fine-tuning, or resumed), training mode on `device`.
+    pub model: Ggpt,
+    /// Optimizer (fresh or resumed).
+    pub optim: ModuleOptimizer,
+    /// First step (0, or the resumed step).
+    pub start_step: u64,
+    /// Set to stop gracefully (Ctrl-C): a checkpoint is written and the loop returns.
+    pub stop: Arc<AtomicBool>,
+    /// Called after every step with the metrics line (progress bar).
+    pub on_step: &'a mut dyn FnMut(&MetricsLine),
+}
+
+/// Result of [`run`].
+pub struct RunResult {
+    /// Final model.
+    pub model: Ggpt,
+    /// Completed steps.
+    pub steps: u64,
+    /// Last validation.
+    pub validation: Option<ChunkValidation>,
+    /// Interrupted by the stop flag.
+    pub interrupted: bool,
+}
+
+fn append_metrics(path: &Path, line: &MetricsLine) -> Result<()> {
+    use std::io::Write;
+    let mut f = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(io_err(path))?;
+    let text = serde_json::to_string(line).map_err(|e| TrainError::Invalid(e.to_string()))?;
+    writeln!(f, "{text}").map_err(io_err(path))
+}
+
+/// Runs the training loop from `ctx.start_step` to `o.steps`.
+pub fn run(o: &TrainOptions, mut ctx: RunContext<'_>) -> Result<RunResult> {
+    std::fs::create_dir_all(ctx.out).map_err(io_err(ctx.out))?;
+    let train = ctx.data.load_split(Split::Train)?;
+    if train.is_empty() {
+        return Err(TrainError::Invalid(format!("{}: no training chunk", ctx.data.dir.display())));
+    }
+    let mut val = ctx.data.load_split(Split::Val)?;
+    val.truncate(o.val_chunks);
+    let scenes: &[SceneEntry] = &ctx.data.manifest.scenes;
+    let mut by_scene = vec![Vec::new(); scenes.len()];
+    for (i, c) in train.iter().enumerate() {
+        if let Some(v) = by_scene.get_mut(c.scene) {
+            v.push(i);
+        }
+    }
+    let metrics_path = ctx.out.join("metrics.jsonl");
+    let plain = ctx.device.clone().without_autodiff();
+    let t0 = Instant::now();
+    let mut model = ctx.model;
+    let mut optim = ctx.optim;
+    let mut last_val: Option<ChunkValidation> = None;
+    let mut step = ctx.start_step;
+    let mut interrupted = false;
+    let make_state = |step: u64, last_val: &Option<ChunkValidation>| TrainState {
+        step,
+        options: o.clone(),
+        rng: format!("pcg64 batches and backend RNG reseeded per step from seed {} (no state to store)", o.seed),
+        data: ctx.data.dir.clone(),
+        last_validation: last_val.clone(),
+    };
+    while step < o.steps {
+        if ctx.stop.load(Ordering::SeqCst) {
+            interrupted = true;
+            break;
+        }
+        let idx = batch_indices(&by_scene, o.batch_size, o.seed, step);
+        let chunks: Vec<&TrainChunk> = idx.iter().filter_map(|&i| train.get(i)).collect();
+        ctx.device.seed(step_seed(o.seed, step, 2));
+        let lr = learning_rate(o, step);
+        let ts = Instant::now();
+        let (m, sl) = train_step(model, &mut optim, &o.model, &chunks, lr, o.clip_grad_norm, &ctx.device)?;
+        model = m;
+        let dt = ts.elapsed().as_secs_f64().max(1e-9);
+        step += 1;
+        let line = MetricsLine {
+            step,
+            kind: "train".into(),
+            loss: sl.total,
+            loss_conf: sl.conf,
+            loss_id: sl.id,
+            lr,
+            grad_norm: sl.grad_norm,
+            chunks_per_s: chunks.len() as f64 / dt,
+            tokens_per_s: sl.tokens as f64 / dt,
+            elapsed_s: t0.elapsed().as_secs_f64(),
+            val: None,
+        };
+        append_metrics(&metrics_path, &line)?;
+        (ctx.on_step)(&line);
+        let do_val = !val.is_empty() && ((o.val_every > 0 && step % o.val_every == 0) || step == o.steps);
+        if do_val {
+            let v = validate_chunks(&model, &o.model, &val, scenes, &plain, o.val_max_tokens)?;
+            tracing::info!(
+                "step {step}: val loss {:.4}, chunk AUC@5 input {:.1} -> refined {:.1}, AUC@10 {:.1} -> {:.1}",
+                v.loss,
+                v.input_auc5,
+                v.refined_auc5,
+                v.input_auc10,
+                v.refined_auc10
+            );
+            let vl = MetricsLine { kind: "val".into(), loss: v.loss, loss_conf: f64::NAN, loss_id: f64::NAN, val: Some(v.clone()), ..line.clone() };
+            append_metrics(&metrics_path, &vl)?;
+            last_val = Some(v);
+        }
+        if o.save_every > 0 && step % o.save_every == 0 {
+            save_checkpoint(ctx.out, &model, &optim, &make_state(step, &last_val))?;
+        }
+    }
+    save_checkpoint(ctx.out, &model, &optim, &make_state(step, &last_val))?;
+    Ok(RunResult { model, steps: step, validation: last_val, interrupted })
+}
