@@ -8,6 +8,7 @@
 #![warn(missing_docs)]
 
 pub mod attention;
+pub mod bench;
 pub mod block;
 pub mod chunk_io;
 pub mod config;

@@ -30,7 +30,6 @@
 
 use std::path::{Path, PathBuf};
 
-use std::io::Write;
 
 use safetensors::tensor::{Dtype, TensorView};
 use serde::{Deserialize, Serialize};

@@ -2,7 +2,6 @@
 //! official key names and PyTorch layouts (`network.md` §12.2; loads strictly with
 //! `ggpt_model::weights::load_checkpoint`) and the official `model_config` JSON.
 
-use std::io::Write;
 use std::path::Path;
 
 use burn::module::Module;

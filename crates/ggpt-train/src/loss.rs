@@ -167,7 +167,7 @@ mod tests {
     }
 
     fn scalar(t: Tensor<1>) -> f64 {
-        t.into_data().convert::<f64>().to_vec::<f64>().unwrap()[0]
+        t.into_data().convert::<f64>().try_to_vec::<f64>().unwrap()[0]
     }
 
     /// Hand-computed: chunk A has 3 pixels, chunk B 1 pixel; B has one DLT token (after its
@@ -258,8 +258,8 @@ mod tests {
         let conf = th.clone().exp().add_scalar(1.0);
         let parts = loss(tx.clone(), conf, &HostTargets::new(&chunks).upload(&d));
         let grads = parts.total.backward();
-        let gx: Vec<f32> = tx.grad(&grads).unwrap().into_data().to_vec().unwrap();
-        let gh: Vec<f32> = th.grad(&grads).unwrap().into_data().to_vec().unwrap();
+        let gx: Vec<f32> = tx.grad(&grads).unwrap().into_data().try_to_vec().unwrap();
+        let gh: Vec<f32> = th.grad(&grads).unwrap().into_data().try_to_vec().unwrap();
         let eps = 1e-6;
         let mut worst = 0.0f64;
         for j in 0..3 * n {

@@ -84,9 +84,10 @@ struct PrepareArgs {
     /// First synthetic seed.
     #[arg(long, default_value_t = 1000)]
     first_seed: u64,
-    /// Views per synthetic scene.
-    #[arg(long, default_value_t = 4)]
-    views: usize,
+    /// Views per synthetic scene; a list (`4,8`) is cycled over the scenes (after the kinds:
+    /// scene `i` gets kind `i % kinds` and views `(i / kinds) % views`).
+    #[arg(long, value_delimiter = ',', default_value = "4")]
+    views: Vec<usize>,
     /// Synthetic ff width (multiple of 14).
     #[arg(long, default_value_t = 154)]
     width: usize,
@@ -265,6 +266,9 @@ fn prepare(a: &PrepareArgs) -> Result<()> {
     if kinds.is_empty() {
         bail!("--kinds is empty");
     }
+    if a.views.is_empty() || a.views.iter().any(|&v| v < 2) {
+        bail!("--views {:?}: every entry must be at least 2 (SfM needs two views)", a.views);
+    }
     let n_syn = a.synthetic_train + a.synthetic_val;
     let n_val_off = ((a.official.len() as f64) * a.val_fraction).round() as usize;
     let total = n_syn + a.official.len();
@@ -274,7 +278,8 @@ fn prepare(a: &PrepareArgs) -> Result<()> {
     let pb = bar(total as u64, "prepare");
     let mut counts = [0usize; 2];
     for i in 0..n_syn {
-        let spec = SynthSpec { kind: kinds[i % kinds.len()], views: a.views, width: a.width, height: a.height, seed: a.first_seed + i as u64 };
+        let views = a.views[(i / kinds.len()) % a.views.len()];
+        let spec = SynthSpec { kind: kinds[i % kinds.len()], views, width: a.width, height: a.height, seed: a.first_seed + i as u64 };
         let split = if i < a.synthetic_train { Split::Train } else { Split::Val };
         let (scene, sfm) = synthetic_scene(&spec).with_context(|| format!("synthetic scene {spec:?}"))?;
         let prep = prepare_scene(&scene, &sfm, &params).with_context(|| format!("preparing {}", scene.name))?;
@@ -419,7 +424,14 @@ fn train(a: &TrainArgs) -> Result<()> {
     pb.set_position(start);
     let mut on_step = |l: &MetricsLine| {
         pb.set_position(l.step);
-        pb.set_message(format!("loss {:.4} (conf {:.4}, id {:.4}) {:.2} chunks/s {:.0} tok/s", l.loss, l.loss_conf, l.loss_id, l.chunks_per_s, l.tokens_per_s));
+        pb.set_message(format!(
+            "loss {:.4} (conf {:.4}, id {:.4}) {:.2} chunks/s {:.0} tok/s",
+            l.loss,
+            l.loss_conf.unwrap_or(f64::NAN),
+            l.loss_id.unwrap_or(f64::NAN),
+            l.chunks_per_s,
+            l.tokens_per_s
+        ));
     };
     let res = trainer::run(&opts, RunContext { out: &a.out, data: &data, device: ad, model, optim, start_step: start, stop, on_step: &mut on_step })?;
     pb.finish_and_clear();
@@ -443,7 +455,6 @@ fn train(a: &TrainArgs) -> Result<()> {
     Ok(())
 }
 
-use std::io::Write as _;
 
 fn load_model_any(path: &Path, config: Option<&str>, device: &burn::tensor::Device) -> Result<(Ggpt, GgptConfig)> {
     if path.join("state.json").is_file() {
@@ -576,7 +587,7 @@ fn default_run(out: &Path) -> Result<()> {
         synthetic_train: 3,
         synthetic_val: 1,
         first_seed: 1,
-        views: 3,
+        views: vec![3],
         width: 98,
         height: 70,
         kinds: vec!["room".into(), "object".into()],

@@ -40,7 +40,7 @@ pub fn plot_png(path: &Path, series: &[Series], width: u32, height: u32) -> Resu
     let margin = 20i64;
     let (w, h) = (width as i64, height as i64);
     let mut img = image::RgbImage::from_pixel(width, height, image::Rgb([255, 255, 255]));
-    let mut put = |img: &mut image::RgbImage, x: i64, y: i64, c: [u8; 3]| {
+    let put = |img: &mut image::RgbImage, x: i64, y: i64, c: [u8; 3]| {
         if x >= 0 && y >= 0 && x < w && y < h {
             img.put_pixel(x as u32, y as u32, image::Rgb(c));
         }

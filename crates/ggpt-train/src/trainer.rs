@@ -94,10 +94,12 @@ pub struct MetricsLine {
     pub kind: String,
     /// Loss.
     pub loss: f64,
-    /// `L_conf` part.
-    pub loss_conf: f64,
-    /// `L_id` part.
-    pub loss_id: f64,
+    /// `L_conf` part (train lines).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub loss_conf: Option<f64>,
+    /// `L_id` part (train lines).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub loss_id: Option<f64>,
     /// Learning rate of the step.
     pub lr: f64,
     /// Gradient global norm (before clipping).
@@ -340,7 +342,7 @@ fn append_metrics(path: &Path, line: &MetricsLine) -> Result<()> {
 }
 
 /// Runs the training loop from `ctx.start_step` to `o.steps`.
-pub fn run(o: &TrainOptions, mut ctx: RunContext<'_>) -> Result<RunResult> {
+pub fn run(o: &TrainOptions, ctx: RunContext<'_>) -> Result<RunResult> {
     std::fs::create_dir_all(ctx.out).map_err(io_err(ctx.out))?;
     let train = ctx.data.load_split(Split::Train)?;
     if train.is_empty() {
@@ -388,8 +390,8 @@ pub fn run(o: &TrainOptions, mut ctx: RunContext<'_>) -> Result<RunResult> {
             step,
             kind: "train".into(),
             loss: sl.total,
-            loss_conf: sl.conf,
-            loss_id: sl.id,
+            loss_conf: Some(sl.conf),
+            loss_id: Some(sl.id),
             lr,
             grad_norm: sl.grad_norm,
             chunks_per_s: chunks.len() as f64 / dt,
@@ -410,7 +412,7 @@ pub fn run(o: &TrainOptions, mut ctx: RunContext<'_>) -> Result<RunResult> {
                 v.input_auc10,
                 v.refined_auc10
             );
-            let vl = MetricsLine { kind: "val".into(), loss: v.loss, loss_conf: f64::NAN, loss_id: f64::NAN, val: Some(v.clone()), ..line.clone() };
+            let vl = MetricsLine { kind: "val".into(), loss: v.loss, loss_conf: None, loss_id: None, val: Some(v.clone()), ..line.clone() };
             append_metrics(&metrics_path, &vl)?;
             last_val = Some(v);
         }
@@ -420,4 +422,160 @@ pub fn run(o: &TrainOptions, mut ctx: RunContext<'_>) -> Result<RunResult> {
     }
     save_checkpoint(ctx.out, &model, &optim, &make_state(step, &last_val))?;
     Ok(RunResult { model, steps: step, validation: last_val, interrupted })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::chunkset::tests::toy_chunk;
+    use crate::chunkset::ChunkSetWriter;
+
+    #[allow(deprecated)]
+    fn cpu() -> Device {
+        Device::ndarray()
+    }
+
+    fn toy_set(dir: &Path) -> ChunkSet {
+        let mut w = ChunkSetWriter::new(dir, 4, serde_json::json!({"test": true})).unwrap();
+        for s in 0..3 {
+            let idx = w.add_scene(SceneEntry {
+                name: format!("train{s}"),
+                split: Split::Train,
+                views: 2,
+                height: 14,
+                width: 14,
+                metres_per_unit: 1.0,
+                source: "test".into(),
+            });
+            for k in 0..3 {
+                w.add_chunk(toy_chunk(idx, 60 + 7 * k, (s * 3 + k) as u32)).unwrap();
+            }
+        }
+        let v = w.add_scene(SceneEntry { name: "val".into(), split: Split::Val, views: 2, height: 14, width: 14, metres_per_unit: 1.0, source: "test".into() });
+        w.add_chunk(toy_chunk(v, 50, 99)).unwrap();
+        w.finish().unwrap();
+        ChunkSet::open(dir).unwrap()
+    }
+
+    fn options(steps: u64) -> TrainOptions {
+        TrainOptions {
+            model: GgptConfig::tiny(),
+            steps,
+            batch_size: 2,
+            lr: 1e-3,
+            lr_schedule: LrSchedule::Cosine,
+            warmup_steps: 2,
+            clip_grad_norm: Some(1.0),
+            seed: 7,
+            save_every: 2,
+            val_every: 0,
+            val_chunks: 4,
+            val_max_tokens: 100_000,
+            keep_checkpoints: 10,
+        }
+    }
+
+    fn fresh(o: &TrainOptions, device: &Device) -> Ggpt {
+        let plain = device.clone().without_autodiff();
+        plain.seed(o.seed);
+        Ggpt::new(&o.model, &plain).fork(device).train()
+    }
+
+    /// Every float parameter and buffer of the model, flattened in visiting order.
+    fn weights(model: &Ggpt) -> Vec<f32> {
+        struct Collect(Vec<f32>);
+        impl ModuleVisitor for Collect {
+            fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+                self.0.extend(param.val().into_data().convert::<f32>().try_to_vec::<f32>().unwrap());
+            }
+        }
+        let mut c = Collect(Vec::new());
+        model.valid().visit(&mut c);
+        c.0
+    }
+
+    fn train(o: &TrainOptions, out: &Path, data: &ChunkSet, model: Ggpt, optim: ModuleOptimizer, start: u64, stop_after: Option<u64>, losses: &mut Vec<(u64, f64)>) -> RunResult {
+        let stop = Arc::new(AtomicBool::new(false));
+        let flag = stop.clone();
+        let mut on_step = |l: &MetricsLine| {
+            losses.push((l.step, l.loss));
+            if Some(l.step) == stop_after {
+                flag.store(true, Ordering::SeqCst);
+            }
+        };
+        let device = cpu().autodiff();
+        run(o, RunContext { out, data, device, model, optim, start_step: start, stop, on_step: &mut on_step }).unwrap()
+    }
+
+    /// A run stopped after step 3 (the Ctrl-C path: checkpoint at exit) and resumed from its
+    /// checkpoint ends with exactly the weights and losses of an uninterrupted run.
+    #[test]
+    fn interrupted_and_resumed_run_equals_uninterrupted_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = toy_set(&dir.path().join("set"));
+        let o = options(6);
+        let ad = cpu().autodiff();
+
+        let mut losses_a = Vec::new();
+        let a = train(&o, &dir.path().join("a"), &data, fresh(&o, &ad), adam(), 0, None, &mut losses_a);
+        assert_eq!((a.steps, a.interrupted), (6, false));
+        assert!(a.validation.is_some(), "validation at the last step");
+
+        let out_b = dir.path().join("b");
+        let mut losses_b = Vec::new();
+        let b1 = train(&o, &out_b, &data, fresh(&o, &ad), adam(), 0, Some(3), &mut losses_b);
+        assert_eq!((b1.steps, b1.interrupted), (3, true));
+        let steps: Vec<u64> = list_checkpoints(&out_b).unwrap().iter().map(|(s, _)| *s).collect();
+        assert_eq!(steps, vec![2, 3], "periodic checkpoint at 2, exit checkpoint at 3");
+        let (model, optim, state) = load_checkpoint(&checkpoint_dir(&out_b, 3), &ad).unwrap();
+        assert_eq!(state.step, 3);
+        assert_eq!(state.options, o);
+        let b2 = train(&o, &out_b, &data, model, optim, state.step, None, &mut losses_b);
+        assert_eq!((b2.steps, b2.interrupted), (6, false));
+
+        assert_eq!(losses_a, losses_b, "per-step losses of the resumed run");
+        let (wa, wb) = (weights(&a.model), weights(&b2.model));
+        assert_eq!(wa.len(), wb.len());
+        let max = wa.iter().zip(&wb).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        assert_eq!(max, 0.0, "max |w_uninterrupted - w_resumed| = {max:e}");
+        // the weights did change
+        let w0 = weights(&fresh(&o, &ad));
+        assert!(w0.iter().zip(&wa).any(|(x, y)| x != y));
+        // metrics.jsonl of the resumed run holds steps 1..=6 once each (plus the final val line)
+        let text = std::fs::read_to_string(out_b.join("metrics.jsonl")).unwrap();
+        let train_steps: Vec<u64> = text
+            .lines()
+            .map(|l| serde_json::from_str::<MetricsLine>(l).unwrap())
+            .filter(|l| l.kind == "train")
+            .map(|l| l.step)
+            .collect();
+        assert_eq!(train_steps, (1..=6).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn batches_draw_distinct_scenes_and_are_deterministic() {
+        let by_scene = vec![vec![0, 1], vec![2], vec![], vec![3, 4, 5]];
+        let b = batch_indices(&by_scene, 3, 42, 5);
+        assert_eq!(b, batch_indices(&by_scene, 3, 42, 5));
+        let scene_of = |i: usize| by_scene.iter().position(|l| l.contains(&i)).unwrap();
+        let mut scenes: Vec<usize> = b.iter().map(|&i| scene_of(i)).collect();
+        scenes.sort();
+        assert_eq!(scenes, vec![0, 1, 3]);
+        // more chunks than scenes: scenes repeat only then
+        assert_eq!(batch_indices(&by_scene, 5, 42, 5).len(), 5);
+        // the draw changes with the step
+        assert!((0..20).any(|t| batch_indices(&by_scene, 3, 42, t) != b));
+    }
+
+    #[test]
+    fn cosine_schedule_warms_up_and_decays_to_zero() {
+        let o = TrainOptions { steps: 10, warmup_steps: 2, lr: 1.0, ..options(10) };
+        assert!((learning_rate(&o, 0) - 0.5).abs() < 1e-12);
+        assert!((learning_rate(&o, 1) - 1.0).abs() < 1e-12);
+        assert!((learning_rate(&o, 2) - 1.0).abs() < 1e-12);
+        assert!(learning_rate(&o, 6) < 1.0 && learning_rate(&o, 6) > 0.0);
+        assert!(learning_rate(&o, 10).abs() < 1e-12);
+        let c = TrainOptions { lr_schedule: LrSchedule::Constant, ..o };
+        assert_eq!(learning_rate(&c, 7), 1.0);
+    }
 }

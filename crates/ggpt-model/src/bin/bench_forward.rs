@@ -9,57 +9,17 @@
 
 use std::time::Instant;
 
+use ggpt_model::bench::{peak_rss_mib, pixels_for_tokens, surface_chunk};
 use ggpt_model::device::device_from_name;
 use ggpt_model::infer::{plan_config, prepare_chunks};
-use ggpt_model::plan::{ChunkInput, plan_batch};
+use ggpt_model::plan::plan_batch;
 use ggpt_model::{Ggpt, GgptConfig, PreparedBatch};
-
-/// Fraction of pixels with a DLT point.
-const GUIDANCE_FRACTION: f32 = 0.3;
 
 fn usage() -> ! {
     eprintln!(
         "usage: bench_forward [--tokens N[,N...]] [--device cpu|ndarray|flex|wgpu] [--threads T] [--preset released|small|tiny] [--repeat R] [--profile]"
     );
     std::process::exit(2)
-}
-
-/// A wavy surface seen from a camera: `k` pixels on a grid, depth-like variation, 30 % guidance
-/// near the dense points, a few points outside the unit cube. Deterministic in `seed`.
-fn surface_chunk(k: usize, seed: u64) -> ChunkInput {
-    let mut s = seed.wrapping_mul(0x9E3779B97F4A7C15) | 1;
-    let mut next = move || {
-        s ^= s << 13;
-        s ^= s >> 7;
-        s ^= s << 17;
-        (s >> 11) as f32 / (1u64 << 53) as f32
-    };
-    let w = ((k as f32) * 4.0 / 3.0).sqrt().ceil() as usize;
-    let mut c = ChunkInput::default();
-    for i in 0..k {
-        let (u, v) = ((i % w) as f32 / w as f32 * 2.0 - 1.0, (i / w) as f32 / w as f32 * 2.0 - 1.0);
-        let z = 0.35 * (2.5 * u).sin() * (1.7 * v).cos() + 0.1 * (7.0 * u * v).sin();
-        let p = [0.95 * u + 0.002 * next(), 0.95 * v, z];
-        c.ff_pts.push(p);
-        c.ff_conf.push(1.0 + 5.0 * next());
-        let g = next() < GUIDANCE_FRACTION;
-        c.geo_msk.push(g);
-        c.geo_pts.push(if g { [p[0] + 0.003 * (next() - 0.5), p[1] + 0.003 * (next() - 0.5), p[2]] } else { [0.0; 3] });
-    }
-    c
-}
-
-/// Peak resident set size of this process in MiB (Linux `VmHWM`).
-fn peak_rss_mib() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1))
-                .and_then(|v| v.parse::<f64>().ok())
-        })
-        .map_or(f64::NAN, |kb| kb / 1024.0)
 }
 
 fn main() {
@@ -104,7 +64,7 @@ fn main() {
     println!("| tokens | pixels | device | threads | plan s | upload s | forward s | peak RSS MiB |");
     println!("|---|---|---|---|---|---|---|---|");
     for &n in &tokens {
-        let k = ((n as f32) / (1.0 + GUIDANCE_FRACTION)).round() as usize;
+        let k = pixels_for_tokens(n);
         let chunk = surface_chunk(k, 7);
         for _ in 0..repeat {
             let t0 = Instant::now();

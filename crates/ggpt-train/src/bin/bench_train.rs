@@ -1,0 +1,114 @@
+//! Training-step benchmark: optimisation steps (forward in training mode + loss + backward +
+//! Adam) on surface-like chunks shaped like the fixture's clouds (~30 % guidance, GT a small
+//! perturbation of the dense points). Prints one table row per (config, tokens, batch):
+//! seconds per step, chunks/s, tokens/s, peak RSS.
+//!
+//! ```text
+//! cargo run --release -p ggpt-train --bin bench_train -- --config small --tokens 20000 --batch 4
+//! ```
+//!
+//! Peak RSS is the process's `VmHWM`, reset before each row (Linux).
+
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::Parser;
+use ggpt_model::bench::{peak_rss_mib, pixels_for_tokens, reset_peak_rss, surface_chunk};
+use burn::module::Module;
+use ggpt_model::{Ggpt, GgptConfig};
+use ggpt_train::chunkset::TrainChunk;
+use ggpt_train::trainer::{adam, train_step};
+
+/// Benchmark of GGPT training steps.
+#[derive(Parser, Debug)]
+#[command(name = "bench_train", about)]
+struct Args {
+    /// Model configurations (presets `released`, `small`, `tiny`).
+    #[arg(long, value_delimiter = ',', default_value = "small")]
+    config: Vec<String>,
+    /// Tokens per chunk (dense + DLT), one row each.
+    #[arg(long, value_delimiter = ',', default_value = "20000")]
+    tokens: Vec<usize>,
+    /// Chunks per step (one forward).
+    #[arg(long, value_delimiter = ',', default_value = "4")]
+    batch: Vec<usize>,
+    /// Timed steps per row (after one untimed warm-up step).
+    #[arg(long, default_value_t = 3)]
+    steps: usize,
+    /// Device: `cpu`, `ndarray`, `flex`, `wgpu`.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// CPU threads (0: all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+}
+
+/// A training chunk: the benchmark surface as input, GT 1 % off the dense points.
+fn train_chunk(pixels: usize, seed: u64) -> TrainChunk {
+    let c = surface_chunk(pixels, seed);
+    let gt_pts = c.ff_pts.iter().map(|p| [p[0] * 0.99, p[1] * 0.99 + 0.01, p[2] * 1.01]).collect();
+    TrainChunk {
+        scene: 0,
+        center: [0.0; 3],
+        radius: 1.0,
+        pixels: (0..pixels as u32).collect(),
+        gt_msk: vec![true; pixels],
+        gt_pts,
+        ff_pts: c.ff_pts,
+        ff_conf: c.ff_conf,
+        geo_pts: c.geo_pts,
+        geo_msk: c.geo_msk,
+    }
+}
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    if args.steps == 0 {
+        bail!("--steps must be at least 1");
+    }
+    if args.threads > 0 {
+        // SAFETY: no other thread exists yet.
+        unsafe { std::env::set_var("MATMUL_NUM_THREADS", args.threads.to_string()) };
+        ggpt_model::device::init_cpu_threads(args.threads)?;
+    }
+    let device = ggpt_model::device::device_from_name(&args.device)?;
+    let ad = device.clone().autodiff();
+    println!("| config | parameters | tokens / chunk | batch | device | threads | s / step | chunks / s | tokens / s | peak RSS MiB |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for name in &args.config {
+        let cfg = GgptConfig::preset(name)?;
+        for &tokens in &args.tokens {
+            for &batch in &args.batch {
+                let chunks: Vec<TrainChunk> = (0..batch).map(|b| train_chunk(pixels_for_tokens(tokens), 7 + b as u64)).collect();
+                let refs: Vec<&TrainChunk> = chunks.iter().collect();
+                let n_tokens: usize = chunks.iter().map(TrainChunk::num_tokens).sum();
+                reset_peak_rss();
+                device.seed(42);
+                let mut model = Ggpt::new(&cfg, &device).fork(&ad).train();
+                let params = ggpt_model::weights::num_trainable_params(&model);
+                let mut optim = adam();
+                let mut secs = Vec::with_capacity(args.steps);
+                for s in 0..=args.steps {
+                    let t = Instant::now();
+                    let (m, loss) = train_step(model, &mut optim, &cfg, &refs, 1e-4, None, &ad).with_context(|| format!("{name}: step {s}"))?;
+                    model = m;
+                    if s > 0 {
+                        secs.push(t.elapsed().as_secs_f64());
+                    }
+                    tracing::debug!("step {s}: loss {:.4}", loss.total);
+                }
+                let mean = secs.iter().sum::<f64>() / secs.len() as f64;
+                println!(
+                    "| {name} | {params} | {} | {batch} | {} | {} | {mean:.2} | {:.2} | {:.0} | {:.0} |",
+                    n_tokens / batch,
+                    args.device,
+                    if args.threads == 0 { "all".to_string() } else { args.threads.to_string() },
+                    batch as f64 / mean,
+                    n_tokens as f64 / mean,
+                    peak_rss_mib()
+                );
+            }
+        }
+    }
+    Ok(())
+}
