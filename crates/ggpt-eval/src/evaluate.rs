@@ -318,7 +318,7 @@ fn camera_floats(st: &StFile, key: &str, shape: &[usize]) -> Result<Vec<f64>> {
 pub fn format_table(reports: &[EvalReport]) -> String {
     let mut s = String::new();
     s.push_str(&format!(
-        "{:<14} {:>8} {:>7} {:>7} {:>7} {:>7} {:>9} {:>9} {:>6} | {:>4} {:>6} {:>6} {:>6} {:>6} {:>6} | {:>7} {:>7} {:>7}\n",
+        "{:<14} {:>8} {:>7} {:>7} {:>7} {:>7} {:>9} {:>9} {:>6} | {:>4} {:>6} {:>6} {:>6} {:>6} {:>6} | {:>7} {:>7} {:>7} {:>7}\n",
         "prediction",
         "points",
         "AUC@1",
@@ -335,6 +335,7 @@ pub fn format_table(reports: &[EvalReport]) -> String {
         "cAUC10",
         "FoV°",
         "AbsRel",
+        "δ<1.01",
         "δ<1.03",
         "δ<1.25"
     ));
@@ -354,8 +355,8 @@ pub fn format_table(reports: &[EvalReport]) -> String {
             None => format!("{:>4} {:>6} {:>6} {:>6} {:>6} {:>6}", "-", "-", "-", "-", "-", "-"),
         };
         let depth = match &r.depth {
-            Some(d) => format!("{:>7.4} {:>7.1} {:>7.1}", d.abs_rel, d.delta_1_03, d.delta_1_25),
-            None => format!("{:>7} {:>7} {:>7}", "-", "-", "-"),
+            Some(d) => format!("{:>7.4} {:>7.1} {:>7.1} {:>7.1}", d.abs_rel, d.delta_1_01, d.delta_1_03, d.delta_1_25),
+            None => format!("{:>7} {:>7} {:>7} {:>7}", "-", "-", "-", "-"),
         };
         let label = if r.prediction.chars().count() > 14 {
             let tail: String = r.prediction.chars().rev().take(13).collect::<Vec<_>>().into_iter().rev().collect();
@@ -369,7 +370,7 @@ pub fn format_table(reports: &[EvalReport]) -> String {
         ));
     }
     s.push_str("point AUC@τ: % of GT pixels within τ cm after robust Sim(3) alignment (pipeline.md §10.2);\n");
-    s.push_str("camera AUC@τ: relative-pose error max(rot, trans dir) over view pairs, degrees (§10.3); depth in the GT cameras (§10.4).\n");
+    s.push_str("camera AUC@τ: relative-pose error max(rot, trans dir) over view pairs, degrees (§10.3); depth (AbsRel fraction, δ<τ %) in the GT cameras (§10.4).\n");
     s
 }
 

@@ -35,6 +35,27 @@ fn f(v: &serde_json::Value, path: &[&str]) -> f64 {
     x.as_f64().unwrap_or_else(|| panic!("{path:?} missing in {v}"))
 }
 
+/// The depth columns of the table row of `label`: `(header, row)` cells of the last four
+/// columns (AbsRel, δ<1.01, δ<1.03, δ<1.25).
+fn depth_cells(stdout: &str, label: &str) -> (Vec<String>, Vec<String>) {
+    let last4 = |line: &str| {
+        let t: Vec<String> = line.split_whitespace().map(str::to_string).collect();
+        t[t.len().saturating_sub(4)..].to_vec()
+    };
+    let header = stdout.lines().find(|l| l.starts_with("prediction")).unwrap_or_else(|| panic!("no table header:\n{stdout}"));
+    let row = stdout.lines().find(|l| l.split_whitespace().next() == Some(label)).unwrap_or_else(|| panic!("no row {label}:\n{stdout}"));
+    (last4(header), last4(row))
+}
+
+/// The table's depth columns are AbsRel, δ<1.01, δ<1.03, δ<1.25 with the report's values.
+fn assert_depth_columns(stdout: &str, label: &str, report: &serde_json::Value) {
+    let (header, row) = depth_cells(stdout, label);
+    assert_eq!(header, ["AbsRel", "δ<1.01", "δ<1.03", "δ<1.25"], "{stdout}");
+    let d = |k: &str| f(report, &["depth", k]);
+    let want = [format!("{:.4}", d("abs_rel")), format!("{:.1}", d("delta_1_01")), format!("{:.1}", d("delta_1_03")), format!("{:.1}", d("delta_1_25"))];
+    assert_eq!(row, want, "{stdout}");
+}
+
 #[test]
 fn demo_and_scene_evaluation() {
     let tmp = tempfile::tempdir().unwrap();
@@ -53,20 +74,28 @@ fn demo_and_scene_evaluation() {
     assert!(f(&ff, &["points", "auc_5"]) < 90.0 && f(&ff, &["points", "auc_10"]) < 95.0, "{ff}");
     assert!(f(&ff, &["points", "auc_5"]) > 0.0);
     assert_eq!(f(&gt, &["depth", "delta_1_01"]), 100.0);
+    // The demo's table has one row per report, with the same depth columns.
+    assert_depth_columns(&stdout, "ff", &ff);
+    assert_depth_columns(&stdout, "gt", &gt);
 
     // Evaluate the written scene through the CLI.
     let json = tmp.path().join("ff.json");
     let stdout = run_ok(bin().arg("--scene").arg(&scene_dir).args(["--seed", "7", "--pred", "ff", "--json"]).arg(&json));
     assert!(stdout.contains("AUC@10"), "{stdout}");
     let r = read_json(&json);
+    assert_depth_columns(&stdout, "ff", &r);
+    // The ff prediction is imperfect: δ<1.01 is strictly below δ<1.03 (so the columns differ).
+    assert!(f(&r, &["depth", "delta_1_01"]) < f(&r, &["depth", "delta_1_03"]), "{r}");
     assert_eq!(r["prediction"], "ff");
     assert_eq!(r["camera_source"], "ff");
     // Same seed, same scene: identical to the demo's report.
     assert_eq!(r["points"], ff["points"]);
 
     let json_gt = tmp.path().join("gt.json");
-    run_ok(bin().arg("--scene").arg(&scene_dir).args(["--pred", "gt", "--cameras", "gt", "--json"]).arg(&json_gt));
+    let stdout = run_ok(bin().arg("--scene").arg(&scene_dir).args(["--pred", "gt", "--cameras", "gt", "--json"]).arg(&json_gt));
     let r = read_json(&json_gt);
+    assert_depth_columns(&stdout, "gt", &r);
+    assert_eq!(depth_cells(&stdout, "gt").1[1], "100.0");
     assert_eq!(f(&r, &["points", "auc_10"]), 100.0);
     assert!(f(&r, &["points", "median_cm"]) < 1e-6);
 

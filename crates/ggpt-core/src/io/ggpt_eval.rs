@@ -5,7 +5,7 @@
 //! <seq>/images/000000.jpg, 000001.jpg, ...   RGB; names must be the zero-padded view index
 //! <seq>/depths/000000.npy, ...               f32 [H, W] metric z-depth, <= 1e-5 = invalid
 //! <seq>/extrinsics.npy                       [N, 4, 4] cam_from_world (OpenCV), f32 or f64
-//! <seq>/intrinsics.npy                       [N, 3, 3] pixel-centre K, principal point centred
+//! <seq>/intrinsics.npy                       [N, 3, 3] pixel-centre pinhole K (no skew), principal point centred
 //! ```
 //!
 //! The official loader derives the image size from the principal point,
@@ -29,7 +29,8 @@ pub const POINT_DEPTH_MIN: f32 = 1e-4;
 pub const FF_WIDTH: usize = 518;
 /// Feed-forward heights are multiples of the ViT patch size.
 pub const FF_PATCH: usize = 14;
-/// Tolerance on the last row `0 0 0 1` of the GT extrinsics.
+/// Tolerance on the fixed entries of the GT matrices: the last row `0 0 0 1` of the extrinsics,
+/// the zero skew / lower entries and the `1` of the intrinsics.
 const HOMOGENEOUS_ROW_TOL: f64 = 1e-6;
 
 /// A raw GGPT_eval sequence at its original resolution.
@@ -105,19 +106,23 @@ fn image_names(dir: &Path) -> Result<Vec<String>> {
     Ok(names)
 }
 
-fn float_array(path: &Path, key: &str, a: &NpyArray, shape: &[usize]) -> Result<Vec<f64>> {
+/// A finite `<f4` / `<f8` array of exactly `shape` (`[N, r, c]`, one matrix per view), as f64.
+/// A non-finite entry is reported with its view (the key) and its row / column.
+fn float_array(path: &Path, a: &NpyArray, shape: &[usize; 3]) -> Result<Vec<f64>> {
     if a.shape != shape {
-        return Err(CoreError::format(path, key, format!("wrong shape {:?}, expected {shape:?}", a.shape)));
+        return Err(CoreError::format(path, "", format!("wrong shape {:?}, expected {shape:?}", a.shape)));
     }
-    let v = a.to_f64().ok_or_else(|| CoreError::format(path, key, format!("wrong dtype {}, expected <f4 or <f8", a.data.descr())))?;
+    let v = a.to_f64().ok_or_else(|| CoreError::format(path, "", format!("wrong dtype {}, expected <f4 or <f8", a.data.descr())))?;
     if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-        return Err(CoreError::format(path, key, format!("non-finite value at flat index {i}")));
+        let (rows, cols) = (shape[1], shape[2]);
+        let (view, row, col) = (i / (rows * cols), i / cols % rows, i % cols);
+        return Err(CoreError::format(path, format!("view {view}"), format!("non-finite value {} at row {row}, column {col}", v[i])));
     }
     Ok(v)
 }
 
 fn read_extrinsics(path: &Path, n: usize) -> Result<Vec<Matrix3x4<f64>>> {
-    let v = float_array(path, "", &read_npy(path)?, &[n, 4, 4])?;
+    let v = float_array(path, &read_npy(path)?, &[n, 4, 4])?;
     let mut out = Vec::with_capacity(n);
     for (i, m) in v.chunks_exact(16).enumerate() {
         let last = [m[12], m[13], m[14], m[15] - 1.0];
@@ -130,8 +135,18 @@ fn read_extrinsics(path: &Path, n: usize) -> Result<Vec<Matrix3x4<f64>>> {
 }
 
 fn read_intrinsics(path: &Path, n: usize) -> Result<Vec<Matrix3<f64>>> {
-    let v = float_array(path, "", &read_npy(path)?, &[n, 3, 3])?;
-    Ok(v.chunks_exact(9).map(Matrix3::from_row_slice).collect())
+    let v = float_array(path, &read_npy(path)?, &[n, 3, 3])?;
+    let mut out = Vec::with_capacity(n);
+    for (i, m) in v.chunks_exact(9).enumerate() {
+        // Pinhole without skew: everything but fx, cx, fy, cy is 0 0 / 0 0 1 (the unprojection
+        // and the resize to ff resolution use only fx, fy, cx, cy).
+        let fixed = [(1, 0.0), (3, 0.0), (6, 0.0), (7, 0.0), (8, 1.0)];
+        if fixed.iter().any(|&(j, want)| (m[j] - want).abs() > HOMOGENEOUS_ROW_TOL) {
+            return Err(CoreError::format(path, format!("view {i}"), "not a pinhole K [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (skew or last row)"));
+        }
+        out.push(Matrix3::from_row_slice(m));
+    }
+    Ok(out)
 }
 
 /// Official rule: `int((cx + 0.5) * 2) == W` and `int((cy + 0.5) * 2) == H`.
@@ -156,9 +171,10 @@ fn read_depth(path: &Path, h: usize, w: usize) -> Result<Vec<f32>> {
     if a.shape != [h, w] {
         return Err(CoreError::format(path, "", format!("depth shape {:?} differs from the image size [{h}, {w}]", a.shape)));
     }
-    let v = a.to_f32().ok_or_else(|| CoreError::format(path, "", format!("wrong dtype {}, expected <f4", a.data.descr())))?;
+    // Spec: float32; float64 is accepted too (rounded to f32, like the official float cast).
+    let v = a.to_f32().ok_or_else(|| CoreError::format(path, "", format!("wrong dtype {}, expected <f4 (or <f8)", a.data.descr())))?;
     if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-        return Err(CoreError::format(path, "", format!("non-finite depth at flat index {i}")));
+        return Err(CoreError::format(path, "", format!("non-finite depth {} at row {}, column {}", v[i], i / w, i % w)));
     }
     Ok(v)
 }
@@ -232,6 +248,18 @@ pub fn prepare_ff_resolution(raw: &RawSequence, width: usize) -> Result<Scene> {
     let (hin, win) = (raw.height, raw.width);
     if raw.n == 0 || hin == 0 || win == 0 || width == 0 {
         return Err(CoreError::Invalid(format!("raw sequence '{}' is empty or width is 0", raw.name)));
+    }
+    let (px, n) = (hin * win, raw.n);
+    let sizes = [
+        ("images", raw.images.len(), 3 * n * px),
+        ("depths", raw.depths.len(), n * px),
+        ("cam_from_world", raw.cam_from_world.len(), n),
+        ("intrinsics", raw.intrinsics.len(), n),
+    ];
+    for (what, got, want) in sizes {
+        if got != want {
+            return Err(CoreError::Invalid(format!("raw sequence '{}': {what} has {got} entries, expected {want} ({n} views of {win}x{hin})", raw.name)));
+        }
     }
     let (h, w) = ff_size(hin, win, width);
     let dims = Dims { n: raw.n, h, w };
