@@ -5,11 +5,12 @@
 //! f64; tracks are processed in parallel (rayon) — results do not depend on the thread count.
 
 use ggpt_core::Cameras;
-use nalgebra::{Matrix3x4, Matrix4, Vector3, Vector4};
+use nalgebra::{Matrix3x4, Matrix4, Point3, Vector3, Vector4};
 use rayon::prelude::*;
 
 use crate::error::{Result, SfmError};
 use crate::matches::Correspondences;
+use crate::tracks::BaTracks;
 
 /// Homogeneous-coordinate filter `|X~_4| > 1e-10` (`sfm.md` §9.3 step 1).
 pub const MIN_HOMOGENEOUS_W: f64 = 1e-10;
@@ -247,6 +248,42 @@ pub fn triangulate_homogeneous(obs: &[(Matrix3x4<f64>, [f64; 2])]) -> Vector4<f6
         accumulate(&mut m, &proj_rows(p), uv[0], uv[1]);
     }
     Vector4::from(smallest_eigenvector(&m))
+}
+
+/// Linear triangulation of every BA track from its BA observations (`tracks.observations`, ff
+/// pixels) with `cams` (world = the cameras' frame): one point per [`BaTracks::points`] entry,
+/// `X~_{1:3} / X~_4`, or NaN when the track has fewer than two observations or
+/// `|X~_4| <= 1e-10`. Used for the COLMAP export when the BA did not refine the points (cameras
+/// given, BA failed). No filter is applied here.
+pub fn triangulate_ba_tracks(tracks: &BaTracks, cams: &Cameras) -> Result<Vec<Point3<f64>>> {
+    let n = cams.cam_from_world.len();
+    if cams.intrinsics.len() != n {
+        return Err(SfmError::Shape(format!("BA track triangulation: {n} extrinsics but {} intrinsics", cams.intrinsics.len())));
+    }
+    let p = projection_matrices(cams);
+    let mut per_point: Vec<Vec<(Matrix3x4<f64>, [f64; 2])>> = vec![Vec::new(); tracks.points.len()];
+    for (i, o) in tracks.observations.iter().enumerate() {
+        let (Some(pv), Some(list)) = (p.get(o.view), per_point.get_mut(o.point)) else {
+            return Err(SfmError::Shape(format!(
+                "BA track triangulation: observation {i} refers to view {} / point {} ({n} views, {} points)",
+                o.view,
+                o.point,
+                tracks.points.len()
+            )));
+        };
+        list.push((*pv, o.xy));
+    }
+    let nan = Point3::new(f64::NAN, f64::NAN, f64::NAN);
+    Ok(per_point
+        .par_iter()
+        .map(|obs| {
+            if obs.len() < 2 {
+                return nan;
+            }
+            let x = triangulate_homogeneous(obs);
+            if x[3].abs() > MIN_HOMOGENEOUS_W && x.iter().all(|v| v.is_finite()) { Point3::new(x[0] / x[3], x[1] / x[3], x[2] / x[3]) } else { nan }
+        })
+        .collect())
 }
 
 fn proj_rows(p: &Matrix3x4<f64>) -> Proj {
@@ -537,5 +574,36 @@ mod tests {
         let (corr, vis) = two_view_corr([340.0, 250.0], [240.0, 280.0]);
         let t = triangulate_tracks(&corr, &vis, &cams, &opts).unwrap().tracks[0];
         assert_eq!(t.status, DltStatus::RejectReproj);
+    }
+
+    /// `triangulate_ba_tracks`: exact projections give the point back; a one-observation track
+    /// and a degenerate (`w = 0`) one give NaN; an observation of a missing view is an error.
+    #[test]
+    fn ba_track_triangulation() {
+        use crate::tracks::{BaTracks, TrackObservation};
+        let cams = spec_cams();
+        let p = projection_matrices(&cams);
+        let x = Vector4::new(0.3, -0.2, 4.0, 1.0);
+        let uv = |v: usize| {
+            let q = p[v] * x;
+            [q[0] / q[2], q[1] / q[2]]
+        };
+        let obs = |view, point, xy| TrackObservation { view, point, xy };
+        let tracks = BaTracks {
+            track_ids: vec![0, 1, 2],
+            points: vec![Point3::origin(); 3],
+            observations: vec![obs(0, 0, uv(0)), obs(0, 1, uv(0)), obs(0, 2, [320.0, 240.0]), obs(1, 0, uv(1)), obs(1, 2, [320.0, 240.0])],
+            excluded: 0,
+        };
+        let pts = triangulate_ba_tracks(&tracks, &cams).unwrap();
+        assert_eq!(pts.len(), 3);
+        assert!((pts[0].coords - x.xyz()).norm() < 1e-9, "{:?}", pts[0]);
+        assert!(pts[1].iter().all(|c| c.is_nan()), "one observation: {:?}", pts[1]);
+        // rays (0,0,1) from (0,0,0) and (1,0,0) from camera 1's centre (1,0,0): parallel -> w = 0
+        assert!(pts[2].iter().all(|c| c.is_nan()), "parallel rays: {:?}", pts[2]);
+        let mut bad = tracks.clone();
+        bad.observations.push(obs(2, 0, uv(0)));
+        let e = triangulate_ba_tracks(&bad, &cams).unwrap_err();
+        assert!(e.to_string().contains("view 2"), "{e}");
     }
 }

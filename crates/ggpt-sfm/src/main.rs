@@ -1,7 +1,8 @@
 //! `ggpt-sfm`: the lightweight SfM stage of GGPT as a command-line tool (see `docs/sfm.md`).
 //!
 //! `ggpt-sfm run --ff FILE --matches FILE --preset benchmark --out DIR` writes
-//! `DIR/sfm_dlt_outputs.safetensors`, the COLMAP model `DIR/sparse/0/` and `DIR/summary.json`.
+//! `DIR/sfm_dlt_outputs.safetensors`, the COLMAP model `DIR/sparse/0/` (BA cameras, images and
+//! BA points; `--colmap-points dlt|none` for the DLT points or none) and `DIR/summary.json`.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -12,7 +13,7 @@ use ggpt_core::Cameras;
 use ggpt_sfm::ba::{BaOptions, CameraModel, LossFunction};
 use ggpt_sfm::input::{cameras_from_flat, read_inputs};
 use ggpt_sfm::masks::Preset;
-use ggpt_sfm::output::write_outputs;
+use ggpt_sfm::output::{ColmapExport, ColmapPoints, write_outputs};
 use ggpt_sfm::pipeline::{SfmConfig, run_sfm_correspondences};
 use ggpt_sfm::st::StFile;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -49,6 +50,18 @@ enum BaSolverArg {
     /// relative cost decrease below 1e-6 (fewer iterations; may end in a neighbouring minimum of
     /// the Cauchy cost).
     Project,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum ColmapPointsArg {
+    /// The BA tracks: points refined by the bundle adjustment with their BA observations
+    /// (observations reprojecting beyond --max-reproj-error px are left out, tracks need two).
+    Ba,
+    /// Every kept DLT track with its full track (millions of points; ~1 GB images.bin for 16
+    /// views at 518x392).
+    Dlt,
+    /// Cameras and images only, no 3D point.
+    None,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -94,7 +107,8 @@ struct RunArgs {
     /// Min triangulation angle (degrees).
     #[arg(long)]
     min_tri_angle: Option<f64>,
-    /// Max mean reprojection error of a DLT point (ff pixels).
+    /// Max mean reprojection error of a DLT point (ff pixels); also the largest reprojection
+    /// error of an observation of a BA point written to the COLMAP model.
     #[arg(long)]
     max_reproj_error: Option<f64>,
     /// BA camera model (default: the preset's).
@@ -129,9 +143,14 @@ struct RunArgs {
     /// Reject DLT points behind an observing camera (off by default, official parity).
     #[arg(long)]
     cheirality: bool,
-    /// Output directory.
+    /// Output directory: `sfm_dlt_outputs.safetensors`, the COLMAP model `sparse/0/`
+    /// (bundle-adjusted cameras and images, points chosen by --colmap-points) and `summary.json`.
     #[arg(long)]
     out: PathBuf,
+    /// 3D points of the COLMAP model `sparse/0/points3D.bin` (with their POINTS2D in
+    /// images.bin).
+    #[arg(long, value_enum, default_value = "ba")]
+    colmap_points: ColmapPointsArg,
     /// Seed of every random choice (the stage is deterministic).
     #[arg(long, default_value_t = 42)]
     seed: u64,
@@ -227,11 +246,20 @@ fn run(args: RunArgs) -> Result<()> {
         None => None,
     };
     let out = run_sfm_correspondences(&ff.ff, &ff.images, &m.sets, m.rank_scores.as_deref(), &cfg, fixed.as_ref()).context("running the SfM stage")?;
-    write_outputs(&args.out, &out, &ff.images, &ff.image_names, cfg.camera_model, cfg.shared_camera)
-        .with_context(|| format!("writing outputs to {}", args.out.display()))?;
+    let export = ColmapExport {
+        points: match args.colmap_points {
+            ColmapPointsArg::Ba => ColmapPoints::Ba,
+            ColmapPointsArg::Dlt => ColmapPoints::Dlt,
+            ColmapPointsArg::None => ColmapPoints::None,
+        },
+        max_reproj_error: cfg.thresholds.max_reproj_error,
+        model: cfg.camera_model,
+        shared: cfg.shared_camera,
+    };
+    let cs = write_outputs(&args.out, &out, &ff.images, &ff.image_names, &export).with_context(|| format!("writing outputs to {}", args.out.display()))?;
     let s = &out.summary;
     println!(
-        "ggpt-sfm: {} views {}x{}, {} BA tracks, BA cost {:.6} -> {:.6} ({}), DLT tracks {:?}, {} pixels with a DLT point; wrote {}",
+        "ggpt-sfm: {} views {}x{}, {} BA tracks, BA cost {:.6} -> {:.6} ({}), DLT tracks {:?}, {} pixels with a DLT point, COLMAP {} points ({} observations); wrote {}",
         s.views,
         s.width,
         s.height,
@@ -241,6 +269,8 @@ fn run(args: RunArgs) -> Result<()> {
         if s.ba.success { "ok" } else { "failed: feed-forward cameras kept" },
         s.dlt_tracks,
         s.points_kept,
+        cs.points3d,
+        cs.observations,
         args.out.display()
     );
     if !out.result.points_success {

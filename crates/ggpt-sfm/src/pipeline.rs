@@ -9,10 +9,10 @@ use std::time::Instant;
 
 use ggpt_core::{Cameras, Dims, FeedForward, MatchSet, SfmResult};
 use indicatif::{ProgressBar, ProgressStyle};
-use nalgebra::{Matrix3, Vector2};
+use nalgebra::{Matrix3, Point3, Vector2};
 
 use crate::ba::{BaObservation, BaOptions, BaProblem, CameraModel, LossFunction, bundle_adjust};
-use crate::dlt::{DltOptions, DltOutput, triangulate_tracks};
+use crate::dlt::{DltOptions, DltOutput, triangulate_ba_tracks, triangulate_tracks};
 use crate::ensemble::{INVALID_SCORE, ensemble};
 use crate::epipolar::epipolar_filter;
 use crate::error::{Result, SfmError};
@@ -173,6 +173,14 @@ pub struct SfmOutput {
     pub selection: TrackSelection,
     /// BA input.
     pub ba_tracks: BaTracks,
+    /// The BA tracks' points in the SfM frame, one per [`BaTracks::points`] entry: the points
+    /// refined by the bundle adjustment when it ran and succeeded (`ba_points_refined`), otherwise
+    /// (BA skipped with given cameras, BA failed, no track) the linear triangulation of each
+    /// track's BA observations with the output cameras (NaN where it fails, `|w| <= 1e-10`).
+    /// Exported as the COLMAP model's `points3D` (`output::colmap_model`).
+    pub ba_points: Vec<Point3<f64>>,
+    /// Whether [`SfmOutput::ba_points`] are the points refined by the bundle adjustment.
+    pub ba_points_refined: bool,
     /// Summary.
     pub summary: SfmSummary,
 }
@@ -314,7 +322,7 @@ pub fn run_sfm_correspondences(
     st.done("track selection");
 
     st.start("bundle adjustment");
-    let (cameras, ba) = match fixed_cameras {
+    let (cameras, ba, refined_points) = match fixed_cameras {
         Some(c) => {
             if c.cam_from_world.len() != n || c.intrinsics.len() != n {
                 return Err(SfmError::Shape(format!("given cameras: {} / {} for {n} views", c.cam_from_world.len(), c.intrinsics.len())));
@@ -333,9 +341,14 @@ pub fn run_sfm_correspondences(
                 iterations: 0,
                 message: "cameras given, BA skipped".into(),
             };
-            (c.clone(), ba)
+            (c.clone(), ba, None)
         }
         None => run_ba(ff, dims, &ba_tracks, cfg)?,
+    };
+    let ba_points_refined = refined_points.is_some();
+    let ba_points = match refined_points {
+        Some(p) => p,
+        None => triangulate_ba_tracks(&ba_tracks, &cameras)?,
     };
     st.done("bundle adjustment");
 
@@ -397,6 +410,8 @@ pub fn run_sfm_correspondences(
         dlt,
         selection,
         ba_tracks,
+        ba_points,
+        ba_points_refined,
         summary,
     })
 }
@@ -455,7 +470,12 @@ fn initial_cameras(ff: &FeedForward, dims: Dims) -> Cameras {
     Cameras { cam_from_world: ff.cameras.cam_from_world.clone(), intrinsics }
 }
 
-fn run_ba(ff: &FeedForward, dims: Dims, tracks: &BaTracks, cfg: &SfmConfig) -> Result<(Cameras, BaSummary)> {
+/// Output cameras, BA summary and, when the BA succeeded, its refined points (one per
+/// [`BaTracks::points`] entry, SfM frame).
+type BaRun = (Cameras, BaSummary, Option<Vec<Point3<f64>>>);
+
+/// Runs the BA (see [`BaRun`]).
+fn run_ba(ff: &FeedForward, dims: Dims, tracks: &BaTracks, cfg: &SfmConfig) -> Result<BaRun> {
     let mut summary = BaSummary {
         success: false,
         cameras_given: false,
@@ -470,7 +490,7 @@ fn run_ba(ff: &FeedForward, dims: Dims, tracks: &BaTracks, cfg: &SfmConfig) -> R
     if tracks.points.is_empty() {
         summary.message = "no BA track selected: keeping the feed-forward cameras".into();
         tracing::warn!("{}", summary.message);
-        return Ok((initial_cameras(ff, dims), summary));
+        return Ok((initial_cameras(ff, dims), summary, None));
     }
     let problem = ba_problem(ff, dims, tracks, cfg);
     let report = bundle_adjust(&problem, &cfg.ba_options)?;
@@ -481,9 +501,9 @@ fn run_ba(ff: &FeedForward, dims: Dims, tracks: &BaTracks, cfg: &SfmConfig) -> R
     let cams = Cameras { cam_from_world: report.cam_from_world, intrinsics: report.intrinsics };
     if report.success && cams.is_finite() {
         summary.success = true;
-        Ok((cams, summary))
+        Ok((cams, summary, Some(report.points)))
     } else {
         tracing::warn!(message = %summary.message, "bundle adjustment failed: keeping the feed-forward cameras");
-        Ok((initial_cameras(ff, dims), summary))
+        Ok((initial_cameras(ff, dims), summary, None))
     }
 }

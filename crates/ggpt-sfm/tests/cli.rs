@@ -4,7 +4,7 @@ mod common;
 
 use std::process::Command;
 
-use common::{fixture, max_abs_diff, open};
+use common::{check_colmap_model, compare_with_ceres, fixture, max_abs_diff, open};
 use ggpt_sfm::st::StFile;
 
 #[test]
@@ -28,8 +28,46 @@ fn cli_reproduces_fixture_scatter_with_recorded_cameras() {
     assert_eq!(st.bool("point_masks").unwrap().data, fx.bool("scatter/point_masks"));
     let (d, i) = max_abs_diff(&st.f32("points").unwrap().data, &fx.f32("scatter/points"));
     assert!(d <= 2e-3, "points: max |Δ| = {d} at {i}");
-    assert!(dir.path().join("sparse/0/cameras.bin").is_file());
-    assert!(dir.path().join("summary.json").is_file());
+    // sparse/0: the recorded cameras and the BA tracks triangulated with them (BA skipped)
+    let chk = check_colmap_model(&dir.path().join("sparse/0"), false);
+    let s = summary(dir.path());
+    assert_eq!(s["colmap"]["points"], "ba");
+    assert_eq!(s["colmap"]["ba_points_refined"], false);
+    assert_eq!(s["colmap"]["candidates"], s["tracks_selected"]);
+    assert_eq!((chk.points, chk.observations), (91, 267));
+    assert_eq!(s["colmap"]["points3d"], chk.points);
+    assert_eq!(s["colmap"]["observations"], chk.observations);
+    assert!(chk.max_error <= 4.0, "max reprojection error {}", chk.max_error);
+    let (cams, names) = chk.model.to_cameras(&dir.path().join("sparse/0")).unwrap();
+    assert_eq!(names, ["000000.jpg", "000001.jpg", "000002.jpg", "000003.jpg"]);
+    let (dk, _) = max_abs_diff(&cams.intrinsics.iter().flat_map(|k| k.transpose().iter().map(|&v| v as f32).collect::<Vec<_>>()).collect::<Vec<_>>(), &fx.f32("ba/out_intrinsics"));
+    assert!(dk < 1e-5, "written K vs ba/out_intrinsics: {dk}");
+}
+
+/// `--colmap-points dlt` writes every kept DLT track (7415 on the fixture), `none` no point; both
+/// read back consistently; `--help` documents the flag.
+#[test]
+fn cli_colmap_points_flag() {
+    let steps = fixture("steps.safetensors");
+    let steps = steps.to_str().unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let out = run_cli(dir.path(), &["--cameras", steps, "--colmap-points", "dlt"]);
+    assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
+    let chk = check_colmap_model(&dir.path().join("sparse/0"), true);
+    let s = summary(dir.path());
+    assert_eq!(chk.points, 7415);
+    assert_eq!(s["dlt_tracks"][4], 7415);
+    assert_eq!(s["colmap"]["points"], "dlt");
+    assert_eq!(s["colmap"]["observations"], chk.observations);
+    let out = run_cli(dir.path(), &["--cameras", steps, "--colmap-points", "none"]);
+    assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
+    let chk = check_colmap_model(&dir.path().join("sparse/0"), false);
+    assert_eq!((chk.points, chk.observations, chk.model.images.len(), chk.model.cameras.len()), (0, 0, 4, 1));
+    let out = run_cli(dir.path(), &["--colmap-points", "all"]);
+    assert!(!out.status.success());
+    let help = Command::new(env!("CARGO_BIN_EXE_ggpt-sfm")).args(["run", "--help"]).output().unwrap();
+    let help = String::from_utf8_lossy(&help.stdout);
+    assert!(help.contains("--colmap-points") && help.contains("default: ba"), "{help}");
 }
 
 fn run_cli(dir: &std::path::Path, extra: &[&str]) -> std::process::Output {
@@ -90,6 +128,15 @@ fn cli_reproduces_fixture_ba_and_scatter_from_raw_inputs() {
     eprintln!("vs scatter/*: {flips} mask differences, max |Δ point| = {dp} at {ip}");
     assert_eq!(flips, 0, "point masks differ");
     assert!(dp <= 2e-3, "points: max |Δ| = {dp} at {ip}");
+    // sparse/0: the 93 BA tracks refined by our BA = Ceres' `ba/final_points3D` (after Sim(3)),
+    // observation errors = Ceres' final errors, the two > 4 px outliers left out
+    let chk = check_colmap_model(&dir.path().join("sparse/0"), false);
+    assert_eq!(s["colmap"]["ba_points_refined"], true);
+    assert_eq!(s["colmap"]["candidates"], 93);
+    assert_eq!(s["colmap"]["points3d"], chk.points);
+    let (de, dp) = compare_with_ceres(&fx, &chk, "ba");
+    eprintln!("sparse/0 vs Ceres: max |Δ observation error| {de:e} px, max relative point difference {dp:e}");
+    assert!(chk.max_error <= 4.0 && chk.mean_error < 0.5, "{} / {}", chk.max_error, chk.mean_error);
 }
 
 /// The newest official initialisation (default): Ceres' `ba_upstream/*` costs and focal.

@@ -4,10 +4,10 @@
 mod common;
 
 use common::synth::synth;
-use common::{fixture, max_abs_diff, open};
+use common::{check_colmap_model, fixture, max_abs_diff, open};
 use ggpt_sfm::input::{read_ff, read_matches};
 use ggpt_sfm::masks::Preset;
-use ggpt_sfm::output::write_outputs;
+use ggpt_sfm::output::{ColmapExport, ColmapPoints, write_outputs};
 use ggpt_sfm::pipeline::{SfmConfig, run_sfm, run_sfm_correspondences};
 use ggpt_sfm::st::StFile;
 
@@ -35,17 +35,78 @@ fn fixture_end_to_end_with_recorded_cameras() {
 
     // output files
     let dir = tempfile::tempdir().unwrap();
-    write_outputs(dir.path(), &out, &ff.images, &[], ggpt_sfm::ba::CameraModel::Pinhole, true).unwrap();
+    let cs = write_outputs(dir.path(), &out, &ff.images, &[], &ColmapExport::default()).unwrap();
     let st = StFile::open(&dir.path().join("sfm_dlt_outputs.safetensors")).unwrap();
     assert_eq!(st.bool("point_masks").unwrap().data, fx.bool("scatter/point_masks"));
     assert_eq!(st.f32("points").unwrap().shape, vec![4, 42, 56, 3]);
     assert_eq!(st.f32("extrinsics").unwrap().data, fx.f32("ba/out_extrinsics"));
     assert_eq!(st.f32("intrinsics").unwrap().data, fx.f32("ba/out_intrinsics"));
-    let model = ggpt_core::io::colmap::read_colmap(&dir.path().join("sparse/0")).unwrap();
-    assert_eq!(model.images.len(), 4);
-    assert_eq!(model.points3d.len(), 7415);
     let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["points_kept"], 7794);
+
+    // COLMAP model: the recorded cameras, and the 93 BA tracks (BA skipped: triangulated from
+    // their BA observations with those cameras) minus the tracks the 4 px filter empties
+    let sparse = dir.path().join("sparse/0");
+    let chk = check_colmap_model(&sparse, false);
+    let model = &chk.model;
+    assert_eq!(model.images.len(), 4);
+    assert_eq!(model.cameras.len(), 1);
+    let (cams, _) = model.to_cameras(&sparse).unwrap();
+    for v in 0..4 {
+        let want = fx.ba_out_cameras();
+        assert!((cams.intrinsics[v] - want.intrinsics[v]).abs().max() < 1e-5, "view {v}: K");
+        assert!((cams.cam_from_world[v] - want.cam_from_world[v]).abs().max() < 1e-5, "view {v}: [R|t]");
+    }
+    assert!(!out.ba_points_refined);
+    assert!(!cs.ba_points_refined);
+    assert_eq!(cs.candidates, 93);
+    assert_eq!(out.ba_points.len(), 93);
+    eprintln!("recorded cameras: {:?}; check: {} points, {} observations, max error {}, mean {}", cs, chk.points, chk.observations, chk.max_error, chk.mean_error);
+    assert_eq!(chk.points, cs.points3d);
+    assert_eq!(chk.observations, cs.observations);
+    assert_eq!(cs.points3d, cs.candidates - cs.dropped_points);
+    assert_eq!(cs.observations + cs.dropped_observations, 273, "every BA observation is written or counted as dropped");
+    assert_eq!(summary["colmap"]["points3d"], cs.points3d);
+    assert_eq!((cs.points3d, cs.observations, cs.dropped_points, cs.dropped_observations), (91, 267, 2, 6));
+    assert!(chk.max_error <= 4.0 + 1e-9, "max reprojection error {}", chk.max_error);
+    assert!(chk.mean_error < 1.0, "mean reprojection error {}", chk.mean_error);
+    assert_source_colours(&chk.model, &out.ba_tracks.track_ids, &ff.images, 42, 56);
+
+    // --colmap-points dlt: every kept DLT track (the earlier content); none: cameras only
+    let d2 = tempfile::tempdir().unwrap();
+    let cs = write_outputs(d2.path(), &out, &ff.images, &[], &ColmapExport { points: ColmapPoints::Dlt, ..ColmapExport::default() }).unwrap();
+    let chk = check_colmap_model(&d2.path().join("sparse/0"), true);
+    assert_eq!((cs.points3d, chk.points), (7415, 7415));
+    assert_eq!(cs.observations, chk.observations);
+    assert!(chk.max_error < 4.0 * 4.0, "DLT max error {}", chk.max_error);
+    let cs = write_outputs(d2.path(), &out, &ff.images, &[], &ColmapExport { points: ColmapPoints::None, ..ColmapExport::default() }).unwrap();
+    let chk = check_colmap_model(&d2.path().join("sparse/0"), false);
+    assert_eq!((cs.points3d, chk.points, chk.observations, chk.model.images.len()), (0, 0, 0, 4));
+}
+
+/// Every written BA point whose observation in its track's source view is still the source pixel
+/// centre (`(x + 0.5, y + 0.5)` in that image) carries the colour of that pixel; at least 90 % of
+/// the points are checked this way.
+fn assert_source_colours(model: &ggpt_core::io::colmap::ColmapModel, track_ids: &[usize], images: &[f32], h: usize, w: usize) {
+    let hw = h * w;
+    let mut checked = 0;
+    for p in &model.points3d {
+        let found = p.track.iter().find_map(|&(iid, idx)| {
+            let xy = model.images[iid as usize - 1].points2d[idx as usize].xy;
+            let (x, y) = (xy[0] - 0.5, xy[1] - 0.5);
+            if x.fract() != 0.0 || y.fract() != 0.0 || x < 0.0 || y < 0.0 || x >= w as f64 || y >= h as f64 {
+                return None;
+            }
+            let j = (iid as usize - 1) * hw + y as usize * w + x as usize;
+            track_ids.binary_search(&j).ok().map(|_| j)
+        });
+        if let Some(j) = found {
+            let rgb: Vec<u8> = images[3 * j..3 * j + 3].iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+            assert_eq!(p.rgb.to_vec(), rgb, "point {}: colour vs source pixel of track {j}", p.id);
+            checked += 1;
+        }
+    }
+    assert!(checked * 10 >= model.points3d.len() * 9, "only {checked} of {} points have their source observation", model.points3d.len());
 }
 
 /// End to end with our BA: cameras differ from the official ones by solver path / gauge, so masks
@@ -81,6 +142,20 @@ fn fixture_end_to_end_with_our_ba() {
     eprintln!("our BA: {diff} mask differences of {}, median point difference {med:e}", want_mask.len());
     assert!(diff <= want_mask.len() / 50, "{diff} mask differences");
     assert!(med < 5e-3, "median point difference {med}");
+
+    // COLMAP model: the BA-refined points of Ceres' run (`ba_upstream/final_points3D`, same free
+    // gauge path) with the BA observations
+    assert!(out.ba_points_refined);
+    let dir = tempfile::tempdir().unwrap();
+    let cs = write_outputs(dir.path(), &out, &ff.images, &[], &ColmapExport::default()).unwrap();
+    let chk = check_colmap_model(&dir.path().join("sparse/0"), false);
+    assert_eq!(cs.candidates, 93);
+    assert_eq!((chk.points, chk.observations), (cs.points3d, cs.observations));
+    assert_eq!((cs.points3d, cs.observations, cs.dropped_observations), (93, 271, 2));
+    let (de, dp) = common::compare_with_ceres(&fx, &chk, "ba_upstream");
+    eprintln!("our BA: {cs:?}; max |Δ observation error| vs Ceres {de:e} px, max BA point difference after Sim(3) {dp:e} (relative); check max error {} mean {}", chk.max_error, chk.mean_error);
+    assert!(chk.max_error <= 4.0 && chk.mean_error < 0.5, "{} / {}", chk.max_error, chk.mean_error);
+    assert_source_colours(&chk.model, &out.ba_tracks.track_ids, &ff.images, 42, 56);
 }
 
 #[test]
