@@ -1,0 +1,159 @@
+//! `ggpt-train` from the command line: the embedded default run, export with a strict reload,
+//! a chunk set from an official per-sequence directory, and a corrupt shard.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use ggpt_model::infer::infer_chunks;
+use ggpt_model::{Ggpt, GgptConfig};
+use ggpt_train::chunkset::{ChunkSet, Split};
+use ggpt_train::trainer::{MetricsLine, list_checkpoints, load_checkpoint};
+
+fn bin() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_ggpt-train"));
+    c.env("RUST_LOG", "warn");
+    c
+}
+
+fn run_ok(cmd: &mut Command) -> Output {
+    let out = cmd.output().expect("spawn ggpt-train");
+    assert!(out.status.success(), "ggpt-train failed: {}\nstdout: {}", String::from_utf8_lossy(&out.stderr), String::from_utf8_lossy(&out.stdout));
+    out
+}
+
+fn official_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/official_format/synth_room_s0")
+}
+
+#[allow(deprecated)]
+fn cpu() -> burn::tensor::Device {
+    burn::tensor::Device::ndarray()
+}
+
+/// No arguments: a synthetic chunk set is prepared and the tiny configuration trained for 20
+/// steps with validation and checkpoints; `export` writes official safetensors that load
+/// strictly and reproduce the checkpoint's outputs.
+#[test]
+fn default_run_then_export_reloads_strictly() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = run_ok(bin().arg("--out").arg(dir.path()));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("trained 20 steps"), "{stdout}");
+    assert!(stdout.contains("held-out chunks: AUC@5"), "{stdout}");
+    let run = dir.path().join("run");
+    let steps: Vec<u64> = list_checkpoints(&run).unwrap().iter().map(|(s, _)| *s).collect();
+    assert_eq!(steps, vec![10, 20]);
+    let lines: Vec<MetricsLine> = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(lines.iter().filter(|l| l.kind == "train").count(), 20);
+    assert_eq!(lines.iter().filter(|l| l.kind == "val").count(), 2);
+    assert!(lines.iter().all(|l| l.loss.is_finite()));
+
+    let export = dir.path().join("export");
+    run_ok(bin().args(["export", "--checkpoint"]).arg(&run).arg("--out-dir").arg(&export));
+    let cfg = GgptConfig::from_json_file(&export.join("model_config.json")).unwrap();
+    assert_eq!(cfg, GgptConfig::tiny());
+    let device = cpu();
+    let exported = ggpt_model::weights::load_checkpoint(Ggpt::new(&cfg, &device), &export.join("model.safetensors")).unwrap();
+    let (ckpt, _, state) = load_checkpoint(&run.join("checkpoints/step-00000020"), &device).unwrap();
+    assert_eq!(state.step, 20);
+    let set = ChunkSet::open(&dir.path().join("chunkset")).unwrap();
+    let val = set.load_split(Split::Val).unwrap();
+    let input = [val[0].to_input()];
+    use burn::module::Module;
+    let a = infer_chunks(&exported, &cfg, &input, &device).unwrap();
+    let b = infer_chunks(&ckpt.valid(), &cfg, &input, &device).unwrap();
+    assert_eq!(a[0].ff_pts_out, b[0].ff_pts_out);
+    assert_eq!(a[0].ff_pts_conf_out, b[0].ff_pts_conf_out);
+    // training moved the outputs away from the zero-initialised head's identity
+    assert!(a[0].ff_pts_out.iter().zip(&val[0].ff_pts).any(|(o, i)| o != i));
+}
+
+/// `prepare --official DIR`: chunks from the official per-sequence files, GT aligned into the
+/// SfM frame (the dense points and the GT agree to a fraction of the chunk size).
+#[test]
+fn prepare_from_an_official_directory() {
+    let dir = tempfile::tempdir().unwrap();
+    let set_dir = dir.path().join("set");
+    let out = run_ok(
+        bin()
+            .args(["prepare", "--out"])
+            .arg(&set_dir)
+            .arg("--official")
+            .arg(official_dir())
+            .args(["--val-fraction", "0", "--chunks-per-scene", "3", "--max-pixels", "1200", "--min-dlt", "40", "--min-pixels", "300"]),
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("1 scenes"));
+    let set = ChunkSet::open(&set_dir).unwrap();
+    let scene = &set.manifest.scenes[0];
+    assert_eq!((scene.views, scene.height, scene.width, scene.split), (4, 42, 56, Split::Train));
+    assert!(scene.source.starts_with("official:"));
+    assert!(scene.metres_per_unit.is_finite() && scene.metres_per_unit > 0.0);
+    let chunks = set.load_split(Split::Train).unwrap();
+    assert_eq!(chunks.len(), 3);
+    for c in &chunks {
+        c.validate().unwrap();
+        assert!(c.len() <= 1200 && c.geo_msk.iter().filter(|&&m| m).count() >= 40);
+        let mut d: Vec<f32> = c
+            .ff_pts
+            .iter()
+            .zip(&c.gt_pts)
+            .zip(&c.gt_msk)
+            .filter(|(_, m)| **m)
+            .map(|((a, b), _)| ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt())
+            .collect();
+        assert!(!d.is_empty());
+        d.sort_by(f32::total_cmp);
+        assert!(d[d.len() / 2] < 0.5, "median |ff - gt| = {} chunk units", d[d.len() / 2]);
+    }
+    // a directory without gt.bin is refused with its path
+    let no_gt = dir.path().join("no_gt");
+    std::fs::create_dir_all(&no_gt).unwrap();
+    for f in ["ff_outputs.bin", "sfm_dlt_outputs.bin"] {
+        std::fs::copy(official_dir().join(f), no_gt.join(f)).unwrap();
+    }
+    let out = bin().args(["prepare", "--out"]).arg(dir.path().join("set2")).arg("--official").arg(&no_gt).output().unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("no_gt") && err.contains("gt.bin"), "{err}");
+}
+
+/// A truncated training shard stops `train` with an error naming the shard (no silent skip).
+#[test]
+fn truncated_shard_stops_training_naming_the_shard() {
+    let dir = tempfile::tempdir().unwrap();
+    let set_dir = dir.path().join("set");
+    run_ok(
+        bin()
+            .args(["prepare", "--out"])
+            .arg(&set_dir)
+            .args(["--synthetic-train", "1", "--synthetic-val", "1", "--views", "3", "--width", "98", "--height", "70"])
+            .args(["--chunks-per-scene", "2", "--max-pixels", "1500", "--min-dlt", "20", "--min-pixels", "200"]),
+    );
+    let set = ChunkSet::open(&set_dir).unwrap();
+    let shard = set.manifest.shards.iter().find(|s| s.split == Split::Train).unwrap();
+    let path = set_dir.join(&shard.file);
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+    let out = bin()
+        .args(["train", "--data"])
+        .arg(&set_dir)
+        .arg("--out")
+        .arg(dir.path().join("run"))
+        .args(["--config", "tiny", "--steps", "2"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains(&shard.file), "{err}");
+    assert!(!dir.path().join("run/checkpoints").exists(), "no checkpoint from corrupt data");
+}
+
+/// `--help` documents every flag of `train` (each long flag has a description).
+#[test]
+fn help_documents_the_flags() {
+    let out = run_ok(bin().args(["train", "--help"]));
+    let text = String::from_utf8_lossy(&out.stdout);
+    for flag in ["--data", "--out", "--config", "--steps", "--batch-size", "--lr", "--lr-schedule", "--clip-grad-norm", "--seed", "--save-every", "--resume", "--init-from", "--devices", "--bn-momentum", "--device"] {
+        assert!(text.contains(flag), "{flag} missing from train --help");
+    }
+}
