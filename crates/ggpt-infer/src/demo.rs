@@ -7,7 +7,7 @@ use ggpt_core::io::scene_dir::write_scene;
 use ggpt_model::device::device_from_name;
 use ggpt_synth::{SceneKind, SynthConfig, generate};
 
-use crate::model_load::{ModelSpec, load_model, resolve_model};
+use crate::model_load::{ChunkingSettings, ModelSpec, chunking_flag, load_model, resolve_chunking, resolve_model};
 use crate::pipeline::{RunOptions, RunReport, run_scene};
 use crate::refiner::BurnRefiner;
 use crate::rss::StageLog;
@@ -36,7 +36,11 @@ pub struct DemoOptions {
     pub preset: Option<String>,
     /// Device name (`cpu`, `ndarray`, `flex`, `wgpu`).
     pub device: String,
-    /// Everything after the synthesis.
+    /// Explicit chunk-sampler settings (`--chunk-size` etc.); they win over the model's
+    /// `inference.json`, which wins over `run.refine.chunking`.
+    pub chunking: ChunkingSettings,
+    /// Everything after the synthesis (`run.refine.chunking` is the base of the chunk-sampler
+    /// resolution, see [`crate::model_load::resolve_chunking`]).
     pub run: RunOptions,
 }
 
@@ -69,6 +73,10 @@ fn demo_model(opts: &DemoOptions) -> Result<ModelSpec> {
 /// `ggpt-infer run` into `<out>`.
 pub fn run_demo(opts: &DemoOptions, log: &mut StageLog) -> Result<DemoReport> {
     let spec = demo_model(opts)?;
+    let mut run_opts = opts.run.clone();
+    let chunking = resolve_chunking(&run_opts.refine.chunking, &spec, &opts.chunking, chunking_flag)?;
+    tracing::info!("chunk sampler: {}", chunking.describe());
+    run_opts.refine.chunking = chunking.params.clone();
     let device = device_from_name(&opts.device)?;
     log.start("load model");
     let model = load_model(&spec, &device)?;
@@ -98,9 +106,10 @@ pub fn run_demo(opts: &DemoOptions, log: &mut StageLog) -> Result<DemoReport> {
         "model_config_origin": spec.origin,
         "model_config": spec.config,
         "device": opts.device,
-        "refine": opts.run.refine,
-        "export": opts.run.export,
-        "sfm_preset": format!("{:?}", opts.run.sfm_preset),
+        "chunking": chunking,
+        "refine": run_opts.refine,
+        "export": run_opts.export,
+        "sfm_preset": format!("{:?}", run_opts.sfm_preset),
     });
     let meta = serde_json::json!({
         "ggpt_infer_version": env!("CARGO_PKG_VERSION"),
@@ -108,6 +117,6 @@ pub fn run_demo(opts: &DemoOptions, log: &mut StageLog) -> Result<DemoReport> {
         "dtype": "f32",
         "seed": opts.seed,
     });
-    let run = run_scene(&mut scene, &mut refiner, &opts.run, &opts.out, &config, meta, log)?;
+    let run = run_scene(&mut scene, &mut refiner, &run_opts, &opts.out, &config, meta, log)?;
     Ok(DemoReport { scene_dir, weights: spec.weights, run })
 }

@@ -13,6 +13,15 @@ pub enum InferError {
         /// The path that was looked up.
         path: PathBuf,
     },
+    /// A model folder's `inference.json` (recommended sampler settings) cannot be read or is
+    /// invalid (malformed JSON, unknown key, out-of-range value).
+    #[error("model inference settings {path}: {message}")]
+    Settings {
+        /// The `inference.json` file.
+        path: PathBuf,
+        /// What is wrong with it.
+        message: String,
+    },
     /// Invalid input or option.
     #[error("invalid input: {0}")]
     Invalid(String),

@@ -18,7 +18,7 @@ use ggpt_model::weights::load_checkpoint;
 use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_infer::demo::{DemoOptions, run_demo};
 use ggpt_infer::evaluation::format_table;
-use ggpt_infer::model_load::{SHIPPED_MODEL_DIR, load_model, resolve_model};
+use ggpt_infer::model_load::{ChunkingSettings, SHIPPED_MODEL_DIR, chunking_flag, load_model, resolve_chunking, resolve_model};
 use ggpt_infer::pipeline::{RunOptions, RunReport, run_scene};
 use ggpt_infer::refiner::BurnRefiner;
 use ggpt_infer::rss::{StageLog, StageTiming};
@@ -108,6 +108,22 @@ struct CommonArgs {
     /// chunk runs alone). Bounds the memory.
     #[arg(long, default_value_t = ggpt_scene::driver::DEFAULT_MAX_TOKENS_PER_FORWARD)]
     max_tokens_per_forward: usize,
+    /// Chunk sampler: cube half-size as a fraction of the scene radius R (pipeline.md §5).
+    /// Precedence: this flag, else the model folder's inference.json, else the official 0.2.
+    #[arg(long, value_name = "F")]
+    chunk_size: Option<f64>,
+    /// Chunk sampler: maximum pixels per chunk (a larger cube shrinks by 0.9 until it fits).
+    /// Precedence: this flag, else the model's inference.json, else 400000.
+    #[arg(long, value_name = "N")]
+    max_chunk_pixels: Option<usize>,
+    /// Chunk sampler: initial minimum number of DLT pixels of an accepted chunk (lowered on
+    /// rejections). Precedence: this flag, else the model's inference.json, else 100.
+    #[arg(long, value_name = "N")]
+    min_chunk_dlt: Option<usize>,
+    /// Chunk sampler: initial minimum number of pixels of an accepted chunk (lowered on
+    /// rejections). Precedence: this flag, else the model's inference.json, else 10000.
+    #[arg(long, value_name = "N")]
+    min_chunk_pixels: Option<usize>,
     /// SfM threshold preset when the SfM stage runs: `demo`, `benchmark` or `many-views`.
     #[arg(long, default_value = "demo")]
     sfm_preset: String,
@@ -190,6 +206,13 @@ struct DemoArgs {
     common: CommonArgs,
 }
 
+impl CommonArgs {
+    /// The explicitly given chunk-sampler flags.
+    fn chunking(&self) -> ChunkingSettings {
+        ChunkingSettings { chunk_size: self.chunk_size, max_pixels: self.max_chunk_pixels, min_dlt: self.min_chunk_dlt, min_pixels: self.min_chunk_pixels }
+    }
+}
+
 fn configure_threads(threads: usize) -> Result<()> {
     if threads > 0 {
         // SAFETY: called before any other thread of this process exists (the thread pools of
@@ -267,10 +290,13 @@ fn print_report(r: &RunReport) {
 
 fn run_run(args: RunArgs) -> Result<()> {
     configure_threads(args.common.threads)?;
-    let opts = run_options(&args.common, args.seed.unwrap_or(ggpt_scene::driver::DEFAULT_SEED), args.seed)?;
+    let mut opts = run_options(&args.common, args.seed.unwrap_or(ggpt_scene::driver::DEFAULT_SEED), args.seed)?;
     let mut log = StageLog::new();
     log.start("load model");
     let spec = resolve_model(&args.weights, args.model_config.as_deref(), args.preset.as_deref())?;
+    let chunking = resolve_chunking(&opts.refine.chunking, &spec, &args.common.chunking(), chunking_flag)?;
+    info!("chunk sampler: {}", chunking.describe());
+    opts.refine.chunking = chunking.params.clone();
     let device = device_from_name(&args.common.device)?;
     let model = load_model(&spec, &device).with_context(|| format!("loading weights {}", spec.weights.display()))?;
     let mut refiner = BurnRefiner::new(model, spec.config.clone(), device)?.with_rss_stages(true);
@@ -285,6 +311,7 @@ fn run_run(args: RunArgs) -> Result<()> {
         "model_config_origin": spec.origin,
         "model_config": spec.config,
         "device": args.common.device,
+        "chunking": chunking,
         "refine": opts.refine,
         "export": opts.export,
         "sfm_preset": args.common.sfm_preset,
@@ -323,6 +350,7 @@ fn run_demo_cmd(args: DemoArgs) -> Result<()> {
         model_config: args.model_config.clone(),
         preset: args.preset.clone(),
         device: args.common.device.clone(),
+        chunking: args.common.chunking(),
         run: run_options(&args.common, args.seed, None)?,
     };
     let mut log = StageLog::new();

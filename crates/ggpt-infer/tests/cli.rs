@@ -1,5 +1,7 @@
 //! `ggpt-infer chunk` reproduces the official fixture outputs (shared/fixtures/ggpt_small).
 
+mod common;
+
 use std::path::PathBuf;
 use std::process::Command;
 
@@ -45,5 +47,137 @@ fn chunk_subcommand_reproduces_fixture_outputs() {
         assert_eq!(a.len(), b.len(), "{name}");
         let worst = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
         assert!(worst <= 1e-4 && a.iter().all(|x| x.is_finite()), "{name}: max |Δ| = {worst:e}");
+    }
+}
+
+fn ggpt_infer(args: &[&std::ffi::OsStr]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_ggpt-infer")).args(args).output().expect("runs")
+}
+
+#[test]
+fn chunk_flags_are_documented_in_help() {
+    for cmd in ["run", "demo"] {
+        let out = ggpt_infer(&[cmd.as_ref(), "--help".as_ref()]);
+        assert!(out.status.success());
+        let help = String::from_utf8_lossy(&out.stdout);
+        for flag in ["--chunk-size <F>", "--max-chunk-pixels <N>", "--min-chunk-dlt <N>", "--min-chunk-pixels <N>", "inference.json"] {
+            assert!(help.contains(flag), "`ggpt-infer {cmd} --help` lacks {flag}:\n{help}");
+        }
+    }
+}
+
+/// A malformed `inference.json` next to the weights and a bad chunk flag stop `run` before the
+/// scene is read, naming the file / the flag.
+#[test]
+fn bad_inference_json_and_chunk_flags_are_reported() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let w = dir.path().join("model.safetensors");
+    std::fs::write(&w, b"not read").unwrap();
+    let base = |extra: &[&str]| {
+        let mut a: Vec<std::ffi::OsString> = vec!["run".into(), "--scene".into(), dir.path().join("no-scene").into(), "--weights".into(), dir.path().into(), "--preset".into(), "tiny".into(), "--out".into(), dir.path().join("o").into()];
+        a.extend(extra.iter().map(|s| s.into()));
+        a
+    };
+    let run = |args: Vec<std::ffi::OsString>| {
+        let args: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
+        let out = ggpt_infer(&args);
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).to_string()
+    };
+    let e = run(base(&["--chunk-size", "0"]));
+    assert!(e.contains("--chunk-size = 0") && e.contains("> 0"), "{e}");
+    let e = run(base(&["--max-chunk-pixels", "0"]));
+    assert!(e.contains("--max-chunk-pixels = 0"), "{e}");
+    let e = run(base(&["--min-chunk-dlt=-3"]));
+    assert!(e.contains("invalid value") && e.contains("--min-chunk-dlt"), "{e}");
+    let settings = dir.path().join("inference.json");
+    std::fs::write(&settings, r#"{"chunking": {"chunk_size": 0.2, "max_pixels": 10000, "min_dlt": 100, "min_pixels": 4000, "overlap": 2}}"#).unwrap();
+    let e = run(base(&[]));
+    assert!(e.contains(&settings.display().to_string()) && e.contains("invalid settings: unknown field `overlap`"), "{e}");
+    std::fs::write(&settings, "{\"chunking\": ").unwrap();
+    let e = run(base(&["--chunk-size", "0.3"]));
+    assert!(e.contains(&settings.display().to_string()) && e.contains("malformed JSON"), "{e}");
+}
+
+/// `run` on a tiny scene: an explicit flag wins over the model's `inference.json`, which wins
+/// over the default; the resolved values and origins are logged and written to config.json.
+#[test]
+fn run_resolves_chunk_settings_flag_over_model_over_default() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let device = ggpt_model::device::device_from_name("ndarray").unwrap();
+    let w = dir.path().join("tiny.bpk");
+    ggpt_model::weights::save_burnpack(&ggpt_model::Ggpt::new(&ggpt_model::GgptConfig::tiny(), &device), &w).unwrap();
+    std::fs::write(dir.path().join("inference.json"), r#"{"chunking": {"max_pixels": 5000, "min_dlt": 10, "min_pixels": 300}}"#).unwrap();
+    let cfg = ggpt_synth::SynthConfig { views: 3, width: 56, height: 42, seed: 3, matches: true, ..ggpt_synth::SynthConfig::default() };
+    let scene = ggpt_synth::generate(&cfg).unwrap().scene;
+    let sdir = dir.path().join("scene");
+    ggpt_core::io::scene_dir::write_scene(&sdir, &scene).unwrap();
+    let out = dir.path().join("out");
+    let o = Command::new(env!("CARGO_BIN_EXE_ggpt-infer"))
+        .args(["run", "--scene"])
+        .arg(&sdir)
+        .arg("--weights")
+        .arg(&w)
+        .args(["--preset", "tiny", "--device", "ndarray", "--quiet", "--no-error-maps", "--max-chunk-pixels", "1200", "--min-chunk-dlt", "40", "--out"])
+        .arg(&out)
+        .env("RUST_LOG", "info")
+        .env("NO_COLOR", "1")
+        .output()
+        .expect("runs");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "ggpt-infer run failed: {stderr}");
+    assert!(stderr.contains("chunk sampler: chunk_size 0.2 (default), max_pixels 1200 (flag), min_dlt 40 (flag), min_pixels 300 (model inference.json)"), "{stderr}");
+    let config: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    let c = &config["chunking"];
+    assert_eq!(c["chunk_size"], serde_json::json!({"value": 0.2, "origin": "default"}), "{c}");
+    assert_eq!(c["max_pixels"], serde_json::json!({"value": 1200, "origin": "flag"}), "{c}");
+    assert_eq!(c["min_dlt"], serde_json::json!({"value": 40, "origin": "flag"}), "{c}");
+    assert_eq!(c["min_pixels"], serde_json::json!({"value": 300, "origin": "model inference.json"}), "{c}");
+    assert_eq!(c["model_inference_json"], serde_json::json!(dir.path().join("inference.json")));
+    let r = &config["refine"]["chunking"];
+    assert_eq!((r["chunk_size"].as_f64(), r["max_pixels"].as_u64(), r["min_dlt"].as_u64(), r["min_pixels"].as_u64()), (Some(0.2), Some(1200), Some(40), Some(300)), "{r}");
+    // The sampler ran with those settings: chunks of at most 1200 pixels (on average here).
+    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("meta.json")).unwrap()).unwrap();
+    let (chunks, dense) = (meta["counts"]["chunks"].as_u64().unwrap_or(0), meta["counts"]["dense_tokens"].as_u64().unwrap_or(u64::MAX));
+    assert!(chunks > 0 && dense <= 1200 * chunks, "{chunks} chunks, {dense} dense tokens");
+}
+
+/// `demo` resolves the chunk settings the same way (model folder's inference.json under the
+/// flags); its text COLMAP model (`--colmap-text`) is read by pycolmap.
+#[test]
+fn demo_resolves_chunk_settings_from_model_folder_and_flags() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let device = ggpt_model::device::device_from_name("ndarray").unwrap();
+    let model_dir = dir.path().join("model");
+    std::fs::create_dir_all(&model_dir).unwrap();
+    ggpt_model::weights::save_burnpack(&ggpt_model::Ggpt::new(&ggpt_model::GgptConfig::tiny(), &device), &model_dir.join("model.bpk")).unwrap();
+    std::fs::write(model_dir.join("inference.json"), r#"{"chunking": {"chunk_size": 0.25, "min_dlt": 40, "min_pixels": 300}}"#).unwrap();
+    let out = dir.path().join("out");
+    let o = Command::new(env!("CARGO_BIN_EXE_ggpt-infer"))
+        .args(["demo", "--views", "3", "--width", "70", "--height", "56", "--weights"])
+        .arg(&model_dir)
+        .args(["--preset", "tiny", "--device", "ndarray", "--quiet", "--no-error-maps", "--colmap-text", "--min-chunk-pixels", "200", "--out"])
+        .arg(&out)
+        .output()
+        .expect("runs");
+    assert!(o.status.success(), "ggpt-infer demo failed: {}", String::from_utf8_lossy(&o.stderr));
+    let config: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    let c = &config["chunking"];
+    assert_eq!(c["chunk_size"], serde_json::json!({"value": 0.25, "origin": "model inference.json"}), "{c}");
+    assert_eq!(c["max_pixels"], serde_json::json!({"value": 400000, "origin": "default"}), "{c}");
+    assert_eq!(c["min_dlt"], serde_json::json!({"value": 40, "origin": "model inference.json"}), "{c}");
+    assert_eq!(c["min_pixels"], serde_json::json!({"value": 200, "origin": "flag"}), "{c}");
+    assert_eq!(config["refine"]["chunking"]["min_pixels"], 200);
+    assert_eq!(config["refine"]["chunking"]["chunk_size"], 0.25);
+    let sparse = out.join("sparse/0");
+    assert!(sparse.join("points3D.txt").is_file());
+    let test = "demo_resolves_chunk_settings_from_model_folder_and_flags";
+    if common::python_module_available(test, "pycolmap", "pycolmap==4.2.1", "the text COLMAP model") {
+        let py = common::run_python_check("check_colmap_model.py", &sparse);
+        let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("meta.json")).unwrap()).unwrap();
+        assert_eq!(py["ok"], true, "{py}");
+        assert_eq!(py["num_images"], 3);
+        assert_eq!(py["num_points3D"], meta["export"]["colmap_points"], "{py}");
+        assert_eq!(py["num_observations"], 0);
     }
 }

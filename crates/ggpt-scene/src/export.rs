@@ -16,7 +16,7 @@
 use std::path::Path;
 
 use ggpt_core::io::atomic::write_bytes_atomic;
-use ggpt_core::io::colmap::{ColmapModel, ColmapPoint2D, ColmapPoint3D, write_colmap};
+use ggpt_core::io::colmap::{ColmapModel, ColmapPoint3D, write_colmap};
 use ggpt_core::io::npy::{NpyArray, NpyData, write_npy, write_npz};
 use ggpt_core::io::ply::{PlyCloud, write_ply};
 use ggpt_core::{Cameras, Scene, SfmResult};
@@ -211,9 +211,17 @@ pub fn write_json(path: &Path, value: &serde_json::Value) -> Result<(), SceneErr
     Ok(())
 }
 
+/// `ERROR` of a COLMAP `points3D` entry without observations: COLMAP's "undefined" marker
+/// (`Point3D::HasError()` is false, so COLMAP's / pycolmap's mean reprojection error skips it).
+pub const COLMAP_UNDEFINED_ERROR: f64 = -1.0;
+
 /// Builds the COLMAP model of §9.3: cameras (optionally rescaled to the original resolution),
-/// images `1..N`, and `points` (pixel indices of refined points) as `points3D` with one-element
-/// tracks observed at their own pixel.
+/// images `1..N` with their poses and no `POINTS2D`, and `points` (pixel indices of refined
+/// points) as `points3D` with colour, `ERROR` = [`COLMAP_UNDEFINED_ERROR`] and an **empty
+/// track**. A refined dense point is not triangulated from feature observations, so it has no
+/// track and no reprojection error to store ([project] deviation from the spec's one-element
+/// pixel tracks with error 0, whose stored error was not the reprojection error: pycolmap's
+/// reprojection check rejected it).
 pub fn colmap_model(refined: &RefinedScene, images: &[f32], cameras: &Cameras, names: &[String], points: &[u32], opts: &ColmapExportOptions) -> Result<ColmapModel, SceneError> {
     let d = refined.dims;
     let (hh, ww) = opts.resolution.unwrap_or((d.h, d.w));
@@ -226,17 +234,15 @@ pub fn colmap_model(refined: &RefinedScene, images: &[f32], cameras: &Cameras, n
         k[(1, 2)] = (hh as f64 - 1.0) / 2.0;
     }
     let mut model = ColmapModel::from_cameras(&scaled, hh, ww, names, opts.simple_pinhole, opts.shared_camera)?;
-    let hw = d.hw();
+    let px = d.pixels();
     for (i, &p) in points.iter().enumerate() {
         let p = p as usize;
-        let (view, k) = (p / hw, p % hw);
-        let (y, x) = ((k / d.w) as f64, (k % d.w) as f64);
-        let image = model.images.get_mut(view).ok_or_else(|| SceneError::Invalid(format!("colmap: pixel {p} beyond {} views", d.n)))?;
-        let idx2d = u32::try_from(image.points2d.len()).map_err(|_| SceneError::Invalid("colmap: too many observations".into()))?;
+        if p >= px {
+            return Err(SceneError::Invalid(format!("colmap: pixel {p} beyond {} views", d.n)));
+        }
         let id = i as u64 + 1;
-        image.points2d.push(ColmapPoint2D { xy: [(x + 0.5) * sx, (y + 0.5) * sy], point3d_id: Some(id) });
         let xyz = p3(&refined.points, p).map(f64::from);
-        model.points3d.push(ColmapPoint3D { id, xyz, rgb: p3(images, p).map(color_u8), error: 0.0, track: vec![(image.id, idx2d)] });
+        model.points3d.push(ColmapPoint3D { id, xyz, rgb: p3(images, p).map(color_u8), error: COLMAP_UNDEFINED_ERROR, track: Vec::new() });
     }
     Ok(model)
 }
@@ -456,12 +462,14 @@ mod tests {
         assert_eq!(model.cameras[0].params[2], 56.0); // cx_colmap = W / 2
         assert_eq!(model.images.len(), 4);
         assert_eq!(model.points3d.len(), 50);
+        // Refined points without tracks: no observation anywhere, COLMAP's undefined error.
         let obs: usize = model.images.iter().map(|i| i.points2d.len()).sum();
-        assert_eq!(obs, 50);
-        for p in &model.points3d {
-            let (img, idx) = p.track[0];
-            let im = model.images.iter().find(|i| i.id == img).unwrap();
-            assert_eq!(im.points2d[idx as usize].point3d_id, Some(p.id));
+        assert_eq!(obs, 0);
+        let colmap_pts = subsample(&keep, 50, crate::driver::DEFAULT_SEED);
+        for (p, &px) in model.points3d.iter().zip(&colmap_pts) {
+            assert!(p.track.is_empty() && p.error == COLMAP_UNDEFINED_ERROR, "point {}", p.id);
+            assert_eq!(p.xyz, p3(&refined.points, px as usize).map(f64::from));
+            assert_eq!(p.rgb, p3(&scene.images, px as usize).map(color_u8));
         }
         let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("meta.json")).unwrap()).unwrap();
         assert_eq!(meta["seed"], 42);
