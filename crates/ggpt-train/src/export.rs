@@ -6,6 +6,7 @@ use std::path::Path;
 
 use burn::module::Module;
 use burn_store::ModuleSnapshot;
+use ggpt_infer::model_load::{ChunkingSettings, INFERENCE_SETTINGS_FILE, InferenceSettings, MODEL_CONFIG_FILE, MODEL_WEIGHTS_FILE};
 use ggpt_model::weights::official_key;
 use ggpt_model::{Ggpt, GgptConfig};
 use safetensors::tensor::{Dtype, TensorView};
@@ -81,5 +82,38 @@ pub fn official_model_config(cfg: &GgptConfig) -> Result<serde_json::Value> {
 pub fn save_model_config(cfg: &GgptConfig, path: &Path) -> Result<()> {
     let text = serde_json::to_string_pretty(&official_model_config(cfg)?).map_err(|e| TrainError::Invalid(e.to_string()))?;
     ggpt_core::io::atomic::write_atomic(path, |w| w.write_all(text.as_bytes()))?;
+    Ok(())
+}
+
+/// Sampler settings recorded by `prepare` in a chunk set's manifest (`provenance.params.chunking`),
+/// as the `chunking` section of a model's `inference.json`: a model trained on such chunks is run
+/// on chunks of the same size.
+pub fn training_chunking(provenance: &serde_json::Value) -> Option<ChunkingSettings> {
+    let c = provenance.get("params")?.get("chunking")?;
+    Some(ChunkingSettings {
+        chunk_size: c.get("chunk_size").and_then(|v| v.as_f64()),
+        max_pixels: c.get("max_pixels").and_then(|v| v.as_u64()).map(|v| v as usize),
+        min_dlt: c.get("min_dlt").and_then(|v| v.as_u64()).map(|v| v as usize),
+        min_pixels: c.get("min_pixels").and_then(|v| v.as_u64()).map(|v| v as usize),
+    })
+}
+
+/// Writes a model folder that `ggpt-infer` loads directly: `model.safetensors` (official keys),
+/// `model_config.json` and, when the training chunk sampler is known, `inference.json` with it.
+/// Every file is written atomically.
+pub fn export_model_dir(model: &Ggpt, steps: u64, cfg: &GgptConfig, chunking: Option<ChunkingSettings>, dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(crate::error::io_err(dir))?;
+    save_official_safetensors(model, steps, &dir.join(MODEL_WEIGHTS_FILE))?;
+    save_model_config(cfg, &dir.join(MODEL_CONFIG_FILE))?;
+    let path = dir.join(INFERENCE_SETTINGS_FILE);
+    match chunking {
+        Some(chunking) => {
+            let settings = InferenceSettings { chunking: Some(chunking) };
+            let text = serde_json::to_string_pretty(&settings).map_err(|e| TrainError::Invalid(e.to_string()))?;
+            ggpt_core::io::atomic::write_atomic(&path, |w| w.write_all(text.as_bytes()))?;
+        }
+        None if path.exists() => std::fs::remove_file(&path).map_err(crate::error::io_err(&path))?,
+        None => {}
+    }
     Ok(())
 }

@@ -11,6 +11,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use burn::module::Module;
 use clap::{Args, Parser, Subcommand};
+use ggpt_infer::model_load::{ChunkingSettings, MODEL_WEIGHTS_FILE, load_model, resolve_model};
 use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_scene::chunker::ChunkParams;
 use ggpt_scene::driver::RefineOptions;
@@ -47,41 +48,46 @@ enum Command {
     Plot(PlotArgs),
 }
 
-/// Chunk sampler options shared by `prepare` and `eval`.
-#[derive(Args, Debug, Clone)]
+/// Chunk sampler options shared by `prepare` and `eval` (pipeline.md §5). `eval` takes a flag
+/// that is not given from the model folder's `inference.json`, then from the official default.
+#[derive(Args, Debug, Clone, Default)]
 struct ChunkingArgs {
-    /// Chunk half-size as a fraction of the scene radius R (pipeline.md §5).
-    #[arg(long, default_value_t = 0.2)]
-    chunk_size: f64,
-    /// Pixel cap of a chunk (the cube shrinks by 0.9 while above; official 400000).
-    #[arg(long, default_value_t = 400_000)]
-    max_pixels: usize,
-    /// Minimum DLT pixels of an accepted chunk (official 100).
-    #[arg(long, default_value_t = 100)]
-    min_dlt: usize,
-    /// Minimum pixels of an accepted chunk (official 10000).
-    #[arg(long, default_value_t = 10_000)]
-    min_pixels: usize,
+    /// Chunk half-size as a fraction of the scene radius R [default: 0.2].
+    #[arg(long)]
+    chunk_size: Option<f64>,
+    /// Pixel cap of a chunk: the cube shrinks by 0.9 while above [default: 400000].
+    #[arg(long)]
+    max_pixels: Option<usize>,
+    /// Minimum DLT pixels of an accepted chunk [default: 100].
+    #[arg(long)]
+    min_dlt: Option<usize>,
+    /// Minimum pixels of an accepted chunk [default: 10000].
+    #[arg(long)]
+    min_pixels: Option<usize>,
 }
 
 impl ChunkingArgs {
-    fn params(&self) -> ChunkParams {
-        ChunkParams { chunk_size: self.chunk_size, max_pixels: self.max_pixels, min_dlt: self.min_dlt, min_pixels: self.min_pixels, ..ChunkParams::default() }
+    fn settings(&self) -> ChunkingSettings {
+        ChunkingSettings { chunk_size: self.chunk_size, max_pixels: self.max_pixels, min_dlt: self.min_dlt, min_pixels: self.min_pixels }
+    }
+    /// The flags over the official defaults (`prepare`).
+    fn params(&self) -> Result<ChunkParams> {
+        self.settings().validate(|f| format!("--{}", f.replace('_', "-"))).map_err(anyhow::Error::msg)?;
+        let d = ChunkParams::default();
+        Ok(ChunkParams {
+            chunk_size: self.chunk_size.unwrap_or(d.chunk_size),
+            max_pixels: self.max_pixels.unwrap_or(d.max_pixels),
+            min_dlt: self.min_dlt.unwrap_or(d.min_dlt),
+            min_pixels: self.min_pixels.unwrap_or(d.min_pixels),
+            ..d
+        })
     }
 }
 
-#[derive(Args, Debug)]
-struct PrepareArgs {
-    /// Output chunk-set directory.
-    #[arg(long)]
-    out: PathBuf,
-    /// Synthetic training scenes to generate (seeds first_seed, first_seed + 1, ...).
-    #[arg(long, default_value_t = 0)]
-    synthetic_train: usize,
-    /// Synthetic validation (held-out) scenes, seeds following the training seeds.
-    #[arg(long, default_value_t = 0)]
-    synthetic_val: usize,
-    /// First synthetic seed.
+/// Synthetic scene options (`ggpt-synth`) shared by `prepare` and `eval`.
+#[derive(Args, Debug, Clone)]
+struct SynthArgs {
+    /// First synthetic seed (scene i gets first_seed + i).
     #[arg(long, default_value_t = 1000)]
     first_seed: u64,
     /// Views per synthetic scene; a list (`4,8`) is cycled over the scenes (after the kinds:
@@ -97,6 +103,36 @@ struct PrepareArgs {
     /// Synthetic scene kinds, alternated by seed (`room`, `object`).
     #[arg(long, value_delimiter = ',', default_value = "room,object")]
     kinds: Vec<String>,
+}
+
+impl SynthArgs {
+    /// The spec of synthetic scene `i`.
+    fn spec(&self, i: usize) -> Result<SynthSpec> {
+        if self.kinds.is_empty() {
+            bail!("--kinds is empty");
+        }
+        if self.views.is_empty() || self.views.iter().any(|&v| v < 2) {
+            bail!("--views {:?}: every entry must be at least 2 (SfM needs two views)", self.views);
+        }
+        let kind = parse_kind(&self.kinds[i % self.kinds.len()])?;
+        let views = self.views[(i / self.kinds.len()) % self.views.len()];
+        Ok(SynthSpec { kind, views, width: self.width, height: self.height, seed: self.first_seed + i as u64 })
+    }
+}
+
+#[derive(Args, Debug)]
+struct PrepareArgs {
+    /// Output chunk-set directory.
+    #[arg(long)]
+    out: PathBuf,
+    /// Synthetic training scenes to generate (seeds first_seed, first_seed + 1, ...).
+    #[arg(long, default_value_t = 0)]
+    synthetic_train: usize,
+    /// Synthetic validation (held-out) scenes, seeds following the training seeds.
+    #[arg(long, default_value_t = 0)]
+    synthetic_val: usize,
+    #[command(flatten)]
+    synth: SynthArgs,
     /// Official per-sequence directories (gt.bin, ff_outputs.bin, sfm_dlt_outputs.bin).
     #[arg(long, num_args = 1..)]
     official: Vec<PathBuf>,
@@ -193,10 +229,17 @@ struct TrainArgs {
 struct EvalArgs {
     /// Chunk-set directory whose val scenes are evaluated (synthetic scenes are regenerated
     /// from their recorded spec, official ones read from their directory).
+    #[arg(long, required_unless_present = "synthetic_scenes", conflicts_with = "synthetic_scenes")]
+    data: Option<PathBuf>,
+    /// Evaluate on this many freshly generated synthetic scenes instead (seeds `--first-seed`,
+    /// `+1`, ...; choose seeds no training set used).
     #[arg(long)]
-    data: PathBuf,
-    /// Model: a directory with model.safetensors + model_config.json, a checkpoint directory
-    /// (state.json + model.bpk), or a weight file with `--config`.
+    synthetic_scenes: Option<usize>,
+    #[command(flatten)]
+    synth: SynthArgs,
+    /// Model: a directory with model.safetensors + model_config.json (+ optional
+    /// inference.json), a run or checkpoint directory (state.json + model.bpk), or a weight file
+    /// with `--config`.
     #[arg(long)]
     model: PathBuf,
     /// Model config (preset or JSON) when `--model` is a bare weight file.
@@ -220,7 +263,8 @@ struct ExportArgs {
     /// Checkpoint directory (state.json + model.bpk), or a run directory (newest checkpoint).
     #[arg(long)]
     checkpoint: PathBuf,
-    /// Output directory for model.safetensors + model_config.json.
+    /// Output model folder: model.safetensors (official keys), model_config.json and, when the
+    /// training chunk set is readable, inference.json with its chunk sampler settings.
     #[arg(long)]
     out_dir: PathBuf,
 }
@@ -258,22 +302,15 @@ fn parse_kind(s: &str) -> Result<ggpt_synth::SceneKind> {
 }
 
 fn prepare(a: &PrepareArgs) -> Result<()> {
-    let params = PrepareParams { chunks_per_scene: a.chunks_per_scene, chunking: a.chunking.params(), seed: a.seed, ..PrepareParams::default() };
+    let params = PrepareParams { chunks_per_scene: a.chunks_per_scene, chunking: a.chunking.params()?, seed: a.seed, ..PrepareParams::default() };
     let provenance = serde_json::json!({
         "tool": format!("ggpt-train {}", env!("CARGO_PKG_VERSION")),
         "params": params,
-        "synthetic": {"train": a.synthetic_train, "val": a.synthetic_val, "first_seed": a.first_seed, "views": a.views,
-                      "width": a.width, "height": a.height, "kinds": a.kinds},
+        "synthetic": {"train": a.synthetic_train, "val": a.synthetic_val, "first_seed": a.synth.first_seed, "views": a.synth.views,
+                      "width": a.synth.width, "height": a.synth.height, "kinds": a.synth.kinds},
         "official": a.official,
     });
     let mut w = ChunkSetWriter::new(&a.out, a.shard_chunks, provenance)?;
-    let kinds: Vec<ggpt_synth::SceneKind> = a.kinds.iter().map(|k| parse_kind(k)).collect::<Result<_>>()?;
-    if kinds.is_empty() {
-        bail!("--kinds is empty");
-    }
-    if a.views.is_empty() || a.views.iter().any(|&v| v < 2) {
-        bail!("--views {:?}: every entry must be at least 2 (SfM needs two views)", a.views);
-    }
     let n_syn = a.synthetic_train + a.synthetic_val;
     let n_val_off = ((a.official.len() as f64) * a.val_fraction).round() as usize;
     let total = n_syn + a.official.len();
@@ -283,8 +320,7 @@ fn prepare(a: &PrepareArgs) -> Result<()> {
     let pb = bar(total as u64, "prepare");
     let mut counts = [0usize; 2];
     for i in 0..n_syn {
-        let views = a.views[(i / kinds.len()) % a.views.len()];
-        let spec = SynthSpec { kind: kinds[i % kinds.len()], views, width: a.width, height: a.height, seed: a.first_seed + i as u64 };
+        let spec = a.synth.spec(i)?;
         let split = if i < a.synthetic_train { Split::Train } else { Split::Val };
         let (scene, sfm) = synthetic_scene(&spec).with_context(|| format!("synthetic scene {spec:?}"))?;
         let prep = prepare_scene(&scene, &sfm, &params).with_context(|| format!("preparing {}", scene.name))?;
@@ -458,58 +494,104 @@ fn train(a: &TrainArgs) -> Result<()> {
         );
     }
     if let Some(dir) = &a.export_to {
-        std::fs::create_dir_all(dir)?;
-        ggpt_train::export::save_official_safetensors(&res.model, res.steps, &dir.join("model.safetensors"))?;
-        ggpt_train::export::save_model_config(&opts.model, &dir.join("model_config.json"))?;
+        let chunking = ggpt_train::export::training_chunking(&data.manifest.provenance);
+        ggpt_train::export::export_model_dir(&res.model, res.steps, &opts.model, chunking, dir)?;
         println!("exported {}", dir.display());
     }
     Ok(())
 }
 
 
-fn load_model_any(path: &Path, config: Option<&str>, device: &burn::tensor::Device) -> Result<(Ggpt, GgptConfig)> {
-    if path.join("state.json").is_file() {
-        let (m, _, st) = trainer::load_checkpoint(path, device)?;
-        return Ok((m, st.options.model));
+/// A model from any of the forms `eval` accepts, with its configuration and, for a model folder,
+/// its `inference.json` (a checkpoint's sampler settings come from its chunk set's manifest).
+fn load_model_any(path: &Path, config: Option<&str>, device: &burn::tensor::Device) -> Result<(Ggpt, GgptConfig, Option<ChunkingSettings>)> {
+    let checkpoint = if path.join("state.json").is_file() {
+        Some(path.to_path_buf())
+    } else if path.is_dir() && !path.join(MODEL_WEIGHTS_FILE).is_file() {
+        trainer::list_checkpoints(path)?.last().map(|(_, d)| d.clone())
+    } else {
+        None
+    };
+    if let Some(dir) = checkpoint {
+        let (m, _, st) = trainer::load_checkpoint(&dir, device)?;
+        let chunking = ChunkSet::open(&st.data).ok().and_then(|set| ggpt_train::export::training_chunking(&set.manifest.provenance));
+        return Ok((m, st.options.model, chunking));
     }
-    if path.is_dir() && !path.join("model.safetensors").is_file() {
-        let list = trainer::list_checkpoints(path)?;
-        if let Some((_, d)) = list.last() {
-            let (m, _, st) = trainer::load_checkpoint(d, device)?;
-            return Ok((m, st.options.model));
+    let spec = match config {
+        None => resolve_model(path, None, None)?,
+        Some(c) if Path::new(c).is_file() => resolve_model(path, Some(Path::new(c)), None)?,
+        Some(preset) => resolve_model(path, None, Some(preset))?,
+    };
+    let m = load_model(&spec, device)?;
+    let chunking = spec.inference.and_then(|i| i.settings.chunking);
+    Ok((m, spec.config, chunking))
+}
+
+/// A scene to evaluate: a recorded chunk-set scene or a fresh synthetic one.
+enum EvalScene {
+    Recorded(SceneEntry),
+    Synthetic(SynthSpec),
+}
+
+impl EvalScene {
+    fn load(&self) -> Result<(ggpt_core::Scene, ggpt_core::SfmResult)> {
+        match self {
+            EvalScene::Synthetic(spec) => Ok(synthetic_scene(spec)?),
+            EvalScene::Recorded(s) => {
+                if let Some(js) = s.source.strip_prefix("synthetic:") {
+                    let spec: SynthSpec = serde_json::from_str(js).with_context(|| format!("scene {}: synthetic spec", s.name))?;
+                    Ok(synthetic_scene(&spec)?)
+                } else if let Some(dir) = s.source.strip_prefix("official:") {
+                    Ok(official_scene(Path::new(dir))?)
+                } else {
+                    bail!("scene {}: unknown source '{}'", s.name, s.source)
+                }
+            }
         }
     }
-    let (weights, cfg) = if path.is_dir() {
-        (path.join("model.safetensors"), GgptConfig::from_json_file(&path.join("model_config.json"))?)
-    } else {
-        (path.to_path_buf(), model_config(config.context("--config is required with a bare weight file")?)?)
-    };
-    let m = ggpt_model::weights::load_checkpoint(Ggpt::new(&cfg, device), &weights)?;
-    Ok((m, cfg))
 }
 
 fn eval(a: &EvalArgs) -> Result<()> {
-    let data = ChunkSet::open(&a.data)?;
     let device = ggpt_model::device::device_from_name(&a.device)?;
-    let (model, cfg) = load_model_any(&a.model, a.config.as_deref(), &device)?;
-    let mut refiner = ModelRefiner::new(&model, &cfg, &device);
-    let opts = RefineOptions { chunking: a.chunking.params(), max_tokens_per_forward: a.max_tokens_per_forward, ..RefineOptions::default() };
-    let val: Vec<&SceneEntry> = data.manifest.scenes.iter().filter(|s| s.split == Split::Val).collect();
-    if val.is_empty() {
-        bail!("{}: no val scene", a.data.display());
+    let (model, cfg, model_chunking) = load_model_any(&a.model, a.config.as_deref(), &device)?;
+    // flag > the model's training sampler (inference.json / chunk-set manifest) > default
+    let m = model_chunking.unwrap_or_default();
+    let chunking = ChunkingArgs {
+        chunk_size: a.chunking.chunk_size.or(m.chunk_size),
+        max_pixels: a.chunking.max_pixels.or(m.max_pixels),
+        min_dlt: a.chunking.min_dlt.or(m.min_dlt),
+        min_pixels: a.chunking.min_pixels.or(m.min_pixels),
     }
-    let pb = bar(val.len() as u64, "eval");
+    .params()?;
+    tracing::info!(
+        "chunk sampler: half-size {} R, max {} pixels, min {} DLT pixels, min {} pixels",
+        chunking.chunk_size,
+        chunking.max_pixels,
+        chunking.min_dlt,
+        chunking.min_pixels
+    );
+    let mut refiner = ModelRefiner::new(&model, &cfg, &device);
+    let opts = RefineOptions { chunking: chunking.clone(), max_tokens_per_forward: a.max_tokens_per_forward, ..RefineOptions::default() };
+    let scenes: Vec<EvalScene> = match (&a.data, a.synthetic_scenes) {
+        (_, Some(n)) => (0..n).map(|i| a.synth.spec(i).map(EvalScene::Synthetic)).collect::<Result<_>>()?,
+        (Some(dir), None) => {
+            let data = ChunkSet::open(dir)?;
+            let val: Vec<EvalScene> = data.manifest.scenes.into_iter().filter(|s| s.split == Split::Val).map(EvalScene::Recorded).collect();
+            if val.is_empty() {
+                bail!("{}: no val scene", dir.display());
+            }
+            val
+        }
+        (None, None) => bail!("give --data DIR or --synthetic-scenes N"),
+    };
+    if scenes.is_empty() {
+        bail!("no scene to evaluate");
+    }
+    let pb = bar(scenes.len() as u64, "eval");
     let mut results: Vec<SceneEvaluation> = Vec::new();
-    for s in val {
-        let (scene, sfm) = if let Some(js) = s.source.strip_prefix("synthetic:") {
-            let spec: SynthSpec = serde_json::from_str(js).with_context(|| format!("scene {}: synthetic spec", s.name))?;
-            synthetic_scene(&spec)?
-        } else if let Some(dir) = s.source.strip_prefix("official:") {
-            official_scene(Path::new(dir))?
-        } else {
-            bail!("scene {}: unknown source '{}'", s.name, s.source);
-        };
-        let r = evaluate_scene(&scene, &sfm, &mut refiner, &opts).with_context(|| format!("evaluating {}", s.name))?;
+    for s in &scenes {
+        let (scene, sfm) = s.load()?;
+        let r = evaluate_scene(&scene, &sfm, &mut refiner, &opts).with_context(|| format!("evaluating {}", scene.name))?;
         pb.inc(1);
         pb.println(format!(
             "{:<28} ff AUC@5 {:5.1} AUC@10 {:5.1} | refined AUC@5 {:5.1} AUC@10 {:5.1} | DLT AUC@5 {:5.1} | covered {:.2} | {} chunks",
@@ -537,7 +619,10 @@ fn eval(a: &EvalArgs) -> Result<()> {
         mean(|r| r.refined_auc10) - mean(|r| r.ff_auc10)
     );
     if let Some(out) = &a.out {
-        let v = serde_json::json!({"summary": summary, "scenes": results, "model": a.model, "data": a.data});
+        let v = serde_json::json!({"summary": summary, "scenes": results, "model": a.model, "data": a.data,
+            "synthetic": a.synthetic_scenes.map(|n| serde_json::json!({"scenes": n, "first_seed": a.synth.first_seed, "views": a.synth.views,
+                "width": a.synth.width, "height": a.synth.height, "kinds": a.synth.kinds})),
+            "chunking": chunking});
         ggpt_core::io::atomic::write_atomic(out, |w| w.write_all(serde_json::to_string_pretty(&v).unwrap_or_default().as_bytes()))?;
     }
     Ok(())
@@ -551,12 +636,16 @@ fn export(a: &ExportArgs) -> Result<()> {
         trainer::list_checkpoints(&a.checkpoint)?.last().map(|(_, d)| d.clone()).with_context(|| format!("no checkpoint in {}", a.checkpoint.display()))?
     };
     let (model, _, st) = trainer::load_checkpoint(&dir, &device)?;
-    std::fs::create_dir_all(&a.out_dir)?;
-    let weights = a.out_dir.join("model.safetensors");
-    ggpt_train::export::save_official_safetensors(&model, st.step, &weights)?;
-    ggpt_train::export::save_model_config(&st.options.model, &a.out_dir.join("model_config.json"))?;
+    let chunking = match ChunkSet::open(&st.data) {
+        Ok(set) => ggpt_train::export::training_chunking(&set.manifest.provenance),
+        Err(e) => {
+            tracing::warn!("training chunk set {} unreadable ({e}): no inference.json written", st.data.display());
+            None
+        }
+    };
+    ggpt_train::export::export_model_dir(&model, st.step, &st.options.model, chunking, &a.out_dir)?;
     // strict reload check
-    ggpt_model::weights::load_checkpoint(Ggpt::new(&st.options.model, &device), &weights).context("strict reload of the export")?;
+    ggpt_model::weights::load_checkpoint(Ggpt::new(&st.options.model, &device), &a.out_dir.join(MODEL_WEIGHTS_FILE)).context("strict reload of the export")?;
     println!("exported step {} to {} (strict reload ok)", st.step, a.out_dir.display());
     Ok(())
 }
@@ -597,17 +686,13 @@ fn default_run(out: &Path) -> Result<()> {
         out: data.clone(),
         synthetic_train: 3,
         synthetic_val: 1,
-        first_seed: 1,
-        views: vec![3],
-        width: 98,
-        height: 70,
-        kinds: vec!["room".into(), "object".into()],
+        synth: SynthArgs { first_seed: 1, views: vec![3], width: 98, height: 70, kinds: vec!["room".into(), "object".into()] },
         official: Vec::new(),
         val_fraction: 0.0,
         chunks_per_scene: 4,
         shard_chunks: 64,
         seed: 42,
-        chunking: ChunkingArgs { chunk_size: 0.2, max_pixels: 1500, min_dlt: 20, min_pixels: 200 },
+        chunking: ChunkingArgs { chunk_size: None, max_pixels: Some(1500), min_dlt: Some(20), min_pixels: Some(200) },
     };
     let t = Instant::now();
     prepare(&prep)?;

@@ -66,6 +66,31 @@ fn default_run_then_export_reloads_strictly() {
     assert_eq!(a[0].ff_pts_conf_out, b[0].ff_pts_conf_out);
     // training moved the outputs away from the zero-initialised head's identity
     assert!(a[0].ff_pts_out.iter().zip(&val[0].ff_pts).any(|(o, i)| o != i));
+    // the training sampler travels with the model
+    let inf: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(export.join("inference.json")).unwrap()).unwrap();
+    assert_eq!(inf["chunking"], serde_json::json!({"chunk_size": 0.2, "max_pixels": 1500, "min_dlt": 20, "min_pixels": 200}));
+
+    // whole-scene evaluation of the exported folder on a fresh synthetic scene, sampler from
+    // inference.json except the flag given
+    let report = dir.path().join("eval.json");
+    let out = run_ok(
+        bin()
+            .args(["eval", "--model"])
+            .arg(&export)
+            .args(["--synthetic-scenes", "1", "--first-seed", "77", "--views", "3", "--width", "98", "--height", "70", "--min-dlt", "25", "--out"])
+            .arg(&report),
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("mean over 1 held-out scenes"));
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(r["summary"]["scenes"], 1);
+    assert_eq!(r["chunking"]["max_pixels"], 1500);
+    assert_eq!(r["chunking"]["min_dlt"], 25);
+    let scene = &r["scenes"][0];
+    assert!(scene["chunks"].as_u64().unwrap() > 0, "{scene}");
+    for k in ["ff_auc5", "refined_auc5", "ff_auc10", "refined_auc10"] {
+        let v = scene[k].as_f64().unwrap();
+        assert!((0.0..=100.0).contains(&v), "{k} = {v}");
+    }
 }
 
 /// `prepare --official DIR`: chunks from the official per-sequence files, GT aligned into the
