@@ -1,7 +1,7 @@
 //! The whole GGPT network (network.md §3.2, §5–§10): guidance encoding, PTv3 backbone, head.
 
 use burn::module::{Module, Param};
-use burn::nn::Initializer;
+use burn::nn::{BatchNorm, Initializer};
 use burn::tensor::{Device, Tensor};
 
 use crate::block::Block;
@@ -79,6 +79,30 @@ pub struct ChunkOutput {
 }
 
 impl Ggpt {
+    /// Every BatchNorm of the network (stem, pooling projections, unpooling projections), for
+    /// adjusting their momentum (e.g. BatchNorm re-estimation after training).
+    pub fn batch_norms_mut(&mut self) -> Vec<&mut BatchNorm> {
+        let mut out = vec![&mut self.embedding.norm];
+        for stage in &mut self.enc {
+            if let Some(down) = &mut stage.down {
+                out.push(&mut down.norm);
+            }
+        }
+        for stage in &mut self.dec {
+            out.push(&mut stage.up.proj.norm);
+            out.push(&mut stage.up.proj_skip.norm);
+        }
+        out
+    }
+
+    /// Sets the drop probability of every block's drop path (`0` switches it off while the
+    /// training flag stays on).
+    pub fn set_drop_path(&mut self, prob: f64) {
+        for block in self.enc.iter_mut().flat_map(|s| s.blocks.iter_mut()).chain(self.dec.iter_mut().flat_map(|s| s.blocks.iter_mut())) {
+            block.drop_path.prob = prob;
+        }
+    }
+
     /// A freshly initialised network (network.md §11.4) on `device`.
     pub fn new(cfg: &GgptConfig, device: &Device) -> Self {
         let normal = Initializer::Normal { mean: 0.0, std: 1.0 };

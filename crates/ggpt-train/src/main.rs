@@ -267,6 +267,14 @@ struct ExportArgs {
     /// training chunk set is readable, inference.json with its chunk sampler settings.
     #[arg(long)]
     out_dir: PathBuf,
+    /// Re-estimate the BatchNorm running statistics before exporting: this many training-mode
+    /// forwards (no update, drop path off) over batches of the training split, averaged
+    /// ("precise BN"; 0 = keep the checkpoint's running statistics).
+    #[arg(long, default_value_t = 0)]
+    bn_recalibrate_batches: usize,
+    /// Chunks per recalibration forward (default: the run's batch size).
+    #[arg(long)]
+    bn_recalibrate_batch_size: Option<usize>,
 }
 
 #[derive(Args, Debug)]
@@ -274,12 +282,19 @@ struct PlotArgs {
     /// metrics.jsonl of a run.
     #[arg(long)]
     metrics: PathBuf,
-    /// Output PNG.
+    /// Output PNG: one figure, training loss on top and (when the run has val lines)
+    /// held-out chunk AUC@5/AUC@10 below, on a shared step axis.
     #[arg(long)]
     out: PathBuf,
     /// Moving-average window of the training loss.
     #[arg(long, default_value_t = 25)]
     smooth: usize,
+    /// Image width in pixels.
+    #[arg(long, default_value_t = 1000)]
+    width: u32,
+    /// Height of each panel in pixels (the image is one or two panels high).
+    #[arg(long, default_value_t = 400)]
+    panel_height: u32,
 }
 
 fn bar(len: u64, msg: &str) -> ProgressBar {
@@ -635,8 +650,16 @@ fn export(a: &ExportArgs) -> Result<()> {
     } else {
         trainer::list_checkpoints(&a.checkpoint)?.last().map(|(_, d)| d.clone()).with_context(|| format!("no checkpoint in {}", a.checkpoint.display()))?
     };
-    let (model, _, st) = trainer::load_checkpoint(&dir, &device)?;
-    let chunking = match ChunkSet::open(&st.data) {
+    let (mut model, _, st) = trainer::load_checkpoint(&dir, &device)?;
+    let set = ChunkSet::open(&st.data);
+    if a.bn_recalibrate_batches > 0 {
+        let set = set.as_ref().map_err(|e| anyhow::anyhow!("--bn-recalibrate-batches needs the training chunk set {}: {e}", st.data.display()))?;
+        let chunks = set.load_split(Split::Train)?;
+        let batch = a.bn_recalibrate_batch_size.unwrap_or(st.options.batch_size);
+        tracing::info!("re-estimating BatchNorm statistics over {} batches of {batch} training chunks", a.bn_recalibrate_batches);
+        model = trainer::recalibrate_batch_norm(model, &st.options.model, &chunks, batch, a.bn_recalibrate_batches, st.options.seed, &device.clone().autodiff())?;
+    }
+    let chunking = match &set {
         Ok(set) => ggpt_train::export::training_chunking(&set.manifest.provenance),
         Err(e) => {
             tracing::warn!("training chunk set {} unreadable ({e}): no inference.json written", st.data.display());
@@ -651,29 +674,38 @@ fn export(a: &ExportArgs) -> Result<()> {
 }
 
 fn plot(a: &PlotArgs) -> Result<()> {
-    let text = std::fs::read_to_string(&a.metrics).with_context(|| format!("reading {}", a.metrics.display()))?;
-    let mut loss = Vec::new();
-    let mut val_in = Vec::new();
-    let mut val_out = Vec::new();
-    for (i, line) in text.lines().enumerate() {
-        let v: serde_json::Value = serde_json::from_str(line).with_context(|| format!("{} line {}", a.metrics.display(), i + 1))?;
-        let step = v["step"].as_f64().unwrap_or(f64::NAN);
-        match v["kind"].as_str() {
-            Some("train") => loss.push((step, v["loss"].as_f64().unwrap_or(f64::NAN))),
-            Some("val") => {
-                val_in.push((step, v["val"]["input_auc5"].as_f64().unwrap_or(f64::NAN)));
-                val_out.push((step, v["val"]["refined_auc5"].as_f64().unwrap_or(f64::NAN)));
-            }
-            _ => {}
-        }
-    }
-    use ggpt_train::plot::{Series, plot_png, smooth};
-    let e1 = plot_png(&a.out, &[Series { points: smooth(&loss, a.smooth), rgb: [200, 30, 30] }], 800, 300)?;
-    println!("{}: training loss (red, moving average {}), steps {:.0}..{:.0}, loss {:.4}..{:.4}", a.out.display(), a.smooth, e1.0, e1.1, e1.2, e1.3);
-    if !val_out.is_empty() {
-        let p2 = a.out.with_extension("val.png");
-        let e2 = plot_png(&p2, &[Series { points: val_in, rgb: [120, 120, 120] }, Series { points: val_out, rgb: [30, 90, 200] }], 800, 300)?;
-        println!("{}: held-out chunk AUC@5 input (grey) vs refined (blue), steps {:.0}..{:.0}, AUC {:.1}..{:.1}", p2.display(), e2.0, e2.1, e2.2, e2.3);
+    use ggpt_train::plot::{FigureOptions, read_metrics, write_figure};
+    let m = read_metrics(&a.metrics)?;
+    // the run directory's name (metrics.jsonl lives in the run directory)
+    let run_label = a.metrics.parent().and_then(|d| d.file_name()).map(|n| n.to_string_lossy().into_owned());
+    let o = FigureOptions { smooth: a.smooth, width: a.width, panel_height: a.panel_height, run_label };
+    let s = write_figure(&a.out, &m, &o).with_context(|| format!("plotting {}", a.metrics.display()))?;
+    println!(
+        "{}: {}x{} PNG; top: training loss (light red: per step, bold red: moving average over {} steps), steps {:.0}..{:.0}, loss {:.4}..{:.4}, last average {:.4} at step {:.0}",
+        a.out.display(),
+        s.width,
+        s.height,
+        a.smooth.max(1),
+        s.steps.0,
+        s.steps.1,
+        s.loss.0,
+        s.loss.1,
+        s.last_loss_avg.1,
+        s.last_loss_avg.0
+    );
+    match (s.auc, s.last_val) {
+        (Some(r), Some(v)) => println!(
+            "  bottom: held-out chunk AUC (%) over {} val lines, AUC@5 input (grey) vs refined (blue), AUC@10 dashed/lighter; AUC {:.1}..{:.1}; last (step {:.0}): AUC@5 {:.1} -> {:.1}, AUC@10 {:.1} -> {:.1}",
+            m.val.len(),
+            r.0,
+            r.1,
+            v.step,
+            v.input_auc5,
+            v.refined_auc5,
+            v.input_auc10,
+            v.refined_auc10
+        ),
+        _ => println!("  no validation line (kind \"val\") yet: loss panel only"),
     }
     Ok(())
 }

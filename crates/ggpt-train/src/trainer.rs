@@ -234,6 +234,47 @@ pub fn train_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig, ch
     Ok((model, StepLoss { total: total as f64, conf: conf as f64, id: id as f64, grad_norm, tokens: batch.num_tokens }))
 }
 
+/// Chunk indices grouped by `TrainChunk::scene` (index = scene).
+pub fn by_scene_of(chunks: &[TrainChunk]) -> Vec<Vec<usize>> {
+    let num_scenes = chunks.iter().map(|c| c.scene + 1).max().unwrap_or(0);
+    let mut by_scene = vec![Vec::new(); num_scenes];
+    for (i, c) in chunks.iter().enumerate() {
+        by_scene[c.scene].push(i);
+    }
+    by_scene
+}
+
+/// Re-estimates the BatchNorm running statistics of a trained model ("precise BN"): `batches`
+/// forwards in training mode over batches drawn as in training (`batch_indices` with its own
+/// seed stream), no parameter update, drop path off, with momentum `1 / (k + 1)` at the `k`-th
+/// forward, so that each running mean / variance ends as the plain average of the per-batch
+/// statistics instead of an exponential average of the last ~1/momentum steps. The momentum is
+/// reset to `cfg.bn_momentum` afterwards. `device` must be an autodiff device. The returned
+/// model is meant for evaluation and export (its drop path is off).
+pub fn recalibrate_batch_norm(model: Ggpt, cfg: &GgptConfig, chunks: &[TrainChunk], batch_size: usize, batches: usize, seed: u64, device: &Device) -> Result<Ggpt> {
+    if chunks.is_empty() || batches == 0 {
+        return Ok(model);
+    }
+    let by_scene = by_scene_of(chunks);
+    let mut model = model.fork(device).train();
+    model.set_drop_path(0.0);
+    for k in 0..batches {
+        for bn in model.batch_norms_mut() {
+            bn.momentum = 1.0 / (k as f64 + 1.0);
+        }
+        let idx = batch_indices(&by_scene, batch_size.max(1), step_seed(seed, k as u64, 3), k as u64);
+        let inputs: Vec<ChunkInput> = idx.iter().filter_map(|&i| chunks.get(i)).map(|c| c.to_input()).collect();
+        let batch = ggpt_model::infer::prepare_chunks(cfg, &inputs, device)?;
+        // the forward updates the running statistics; its outputs are not needed
+        let out = model.forward(&batch);
+        drop(out);
+    }
+    for bn in model.batch_norms_mut() {
+        bn.momentum = cfg.bn_momentum;
+    }
+    Ok(model)
+}
+
 /// Directory of the checkpoint of `step`.
 pub fn checkpoint_dir(out: &Path, step: u64) -> PathBuf {
     out.join("checkpoints").join(format!("step-{step:08}"))
@@ -435,6 +476,14 @@ mod tests {
         Device::ndarray()
     }
 
+    /// The backend RNG (initialisation, drop path) is one per backend and process: tests that
+    /// seed it and depend on its sequence must not interleave.
+    static BACKEND_RNG: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+    fn rng_lock() -> std::sync::MutexGuard<'static, ()> {
+        BACKEND_RNG.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
     fn toy_set(dir: &Path) -> ChunkSet {
         let mut w = ChunkSetWriter::new(dir, 4, serde_json::json!({"test": true})).unwrap();
         for s in 0..3 {
@@ -511,6 +560,7 @@ mod tests {
     /// checkpoint ends with exactly the weights and losses of an uninterrupted run.
     #[test]
     fn interrupted_and_resumed_run_equals_uninterrupted_run() {
+        let _rng = rng_lock();
         let dir = tempfile::tempdir().unwrap();
         let data = toy_set(&dir.path().join("set"));
         let o = options(6);
@@ -550,6 +600,45 @@ mod tests {
             .map(|l| l.step)
             .collect();
         assert_eq!(train_steps, (1..=6).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn batch_norm_recalibration_replaces_the_running_statistics_deterministically() {
+        let _rng = rng_lock();
+        let dir = tempfile::tempdir().unwrap();
+        let data = toy_set(dir.path());
+        let chunks = data.load_split(Split::Train).unwrap();
+        let o = options(1);
+        let ad = cpu().autodiff();
+        let stats = |m: &mut Ggpt| -> Vec<f32> {
+            m.batch_norms_mut().iter().flat_map(|bn| {
+                let mut v = bn.running_mean.value().into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
+                v.extend(bn.running_var.value().into_data().convert::<f32>().try_to_vec::<f32>().unwrap());
+                v
+            }).collect()
+        };
+        let mut before = fresh(&o, &ad);
+        let s0 = stats(&mut before);
+        let mut a = recalibrate_batch_norm(fresh(&o, &ad), &o.model, &chunks, 2, 3, 11, &ad).unwrap();
+        let mut b = recalibrate_batch_norm(fresh(&o, &ad), &o.model, &chunks, 2, 3, 11, &ad).unwrap();
+        let (sa, sb) = (stats(&mut a), stats(&mut b));
+        assert_eq!(sa, sb, "same seed, same statistics");
+        assert_eq!(sa.len(), s0.len());
+        assert!(sa.iter().zip(&s0).filter(|(x, y)| x != y).count() > sa.len() / 2, "running statistics replaced");
+        assert!(a.batch_norms_mut().iter().all(|bn| bn.momentum == o.model.bn_momentum), "momentum restored");
+        // one batch with momentum 1 equals a plain training-mode forward with momentum 1
+        let mut c = recalibrate_batch_norm(fresh(&o, &ad), &o.model, &chunks, 2, 1, 11, &ad).unwrap();
+        let mut d = fresh(&o, &ad);
+        d.set_drop_path(0.0);
+        for bn in d.batch_norms_mut() {
+            bn.momentum = 1.0;
+        }
+        let idx = batch_indices(&by_scene_of(&chunks), 2, step_seed(11, 0, 3), 0);
+        let inputs: Vec<_> = idx.iter().map(|&i| chunks[i].to_input()).collect();
+        let _ = d.forward(&ggpt_model::infer::prepare_chunks(&o.model, &inputs, &ad).unwrap());
+        let (sc, sd) = (stats(&mut c), stats(&mut d));
+        let max = sc.iter().zip(&sd).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        assert!(max < 1e-6, "max |difference| {max:e}");
     }
 
     #[test]
