@@ -6,12 +6,9 @@ use burn::module::Module;
 use burn::tensor::Device;
 use ggpt_core::metrics::{auc_from_recalls, recalls_strict};
 use ggpt_core::{Scene, SfmResult};
-use ggpt_model::infer::infer_chunks;
 use ggpt_model::plan::ChunkInput;
 use ggpt_model::{Ggpt, GgptConfig};
-use ggpt_scene::driver::{ChunkRefiner, RefineOptions, RefinedChunk, refine_scene};
-use ggpt_scene::record::ChunkRecord;
-use ggpt_scene::SceneError;
+use ggpt_scene::driver::{ChunkRefiner, RefineOptions, refine_scene};
 use rand::SeedableRng;
 use serde::{Deserialize, Serialize};
 
@@ -89,39 +86,6 @@ pub fn validate_chunks(model: &Ggpt, cfg: &GgptConfig, chunks: &[TrainChunk], sc
         refined_auc5: r5,
         refined_auc10: r10,
     })
-}
-
-/// [`ChunkRefiner`] running a [`Ggpt`] in evaluation mode on one device.
-pub struct ModelRefiner {
-    /// The network (evaluation mode).
-    pub model: Ggpt,
-    /// Its configuration.
-    pub cfg: GgptConfig,
-    /// Device of the forwards.
-    pub device: Device,
-}
-
-impl ModelRefiner {
-    /// Wraps `model` (switched to evaluation mode on `device`).
-    pub fn new(model: &Ggpt, cfg: &GgptConfig, device: &Device) -> Self {
-        Self { model: model.valid().fork(device), cfg: cfg.clone(), device: device.clone() }
-    }
-}
-
-impl ChunkRefiner for ModelRefiner {
-    fn refine(&mut self, chunks: &[ChunkRecord]) -> std::result::Result<Vec<RefinedChunk>, SceneError> {
-        let inputs: Vec<ChunkInput> = chunks
-            .iter()
-            .map(|r| ChunkInput {
-                ff_pts: r.ff_pts.clone(),
-                ff_conf: r.ff_conf.clone(),
-                geo_pts: r.geo_pts.iter().zip(&r.geo_msk).map(|(p, &m)| if m { *p } else { [0.0; 3] }).collect(),
-                geo_msk: r.geo_msk.clone(),
-            })
-            .collect();
-        let outs = infer_chunks(&self.model, &self.cfg, &inputs, &self.device).map_err(|e| SceneError::Invalid(format!("network: {e}")))?;
-        Ok(outs.into_iter().map(|o| RefinedChunk { points: o.ff_pts_out, conf: o.ff_pts_conf_out }).collect())
-    }
 }
 
 /// Whole-scene result of one held-out scene.

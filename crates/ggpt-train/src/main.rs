@@ -16,7 +16,7 @@ use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_scene::chunker::ChunkParams;
 use ggpt_scene::driver::RefineOptions;
 use ggpt_train::chunkset::{ChunkSet, ChunkSetWriter, SceneEntry, Split};
-use ggpt_train::evaluate::{ModelRefiner, SceneEvaluation, evaluate_scene};
+use ggpt_train::evaluate::{SceneEvaluation, evaluate_scene};
 use ggpt_train::prepare::{PrepareParams, SynthSpec, official_scene, prepare_scene, synthetic_scene};
 use ggpt_train::trainer::{self, LrSchedule, MetricsLine, RunContext, TrainOptions};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -585,7 +585,7 @@ fn eval(a: &EvalArgs) -> Result<()> {
         chunking.min_dlt,
         chunking.min_pixels
     );
-    let mut refiner = ModelRefiner::new(&model, &cfg, &device);
+    let mut refiner = ggpt_infer::refiner::BurnRefiner::new(model.valid().fork(&device), cfg.clone(), device.clone())?;
     let opts = RefineOptions { chunking: chunking.clone(), max_tokens_per_forward: a.max_tokens_per_forward, ..RefineOptions::default() };
     let scenes: Vec<EvalScene> = match (&a.data, a.synthetic_scenes) {
         (_, Some(n)) => (0..n).map(|i| a.synth.spec(i).map(EvalScene::Synthetic)).collect::<Result<_>>()?,
