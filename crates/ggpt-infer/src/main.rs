@@ -362,6 +362,7 @@ fn run_demo_cmd(args: DemoArgs) -> Result<()> {
 }
 
 fn main() -> Result<()> {
+    ggpt_model::device::tune_allocator();
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_env_filter(

@@ -39,6 +39,25 @@ pub fn init_cpu_threads(threads: usize) -> Result<()> {
         .map_err(|e| ModelError::Threads(format!("cannot size the CPU thread pool to {threads} threads: {e}")))
 }
 
+/// Keeps freed memory in the process instead of returning it to the kernel after every tensor
+/// operation (glibc malloc; a no-op elsewhere). CPU forwards allocate and free large buffers
+/// (activations, im2col blocks) op after op; with glibc's defaults every buffer above 128 KiB is
+/// a fresh `mmap` whose pages fault in on first touch and are unmapped on free, which profiles
+/// showed as ~20 % of a CPU forward. Raising the mmap and trim thresholds to 1 GiB lets those
+/// buffers be reused from the heap. Peak memory is unchanged (the same buffers are live); the
+/// resident size stays at the peak between forwards. Call once at start-up.
+pub fn tune_allocator() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        const THRESHOLD: libc::c_int = 1 << 30;
+        // SAFETY: mallopt only adjusts glibc malloc parameters; no memory is touched.
+        unsafe {
+            libc::mallopt(libc::M_MMAP_THRESHOLD, THRESHOLD);
+            libc::mallopt(libc::M_TRIM_THRESHOLD, THRESHOLD);
+        }
+    }
+}
+
 /// Threads the CPU backends use now (the rayon global pool's size).
 pub fn cpu_threads() -> usize {
     rayon::current_num_threads()

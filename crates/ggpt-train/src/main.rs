@@ -254,6 +254,10 @@ struct EvalArgs {
     /// Write the per-scene results here (JSON).
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Chunk-level validation instead of whole scenes: the network on the first N recorded
+    /// val chunks of `--data` (as during training; fast), AUC@5/10 cm of input vs refined.
+    #[arg(long, requires = "data")]
+    chunk_level: Option<usize>,
     #[command(flatten)]
     chunking: ChunkingArgs,
 }
@@ -569,6 +573,31 @@ impl EvalScene {
 fn eval(a: &EvalArgs) -> Result<()> {
     let device = ggpt_model::device::device_from_name(&a.device)?;
     let (model, cfg, model_chunking) = load_model_any(&a.model, a.config.as_deref(), &device)?;
+    if let (Some(n), Some(dir)) = (a.chunk_level, &a.data) {
+        let data = ChunkSet::open(dir)?;
+        let mut val = data.load_split(Split::Val)?;
+        val.truncate(n);
+        if val.is_empty() {
+            bail!("{}: no val chunk", dir.display());
+        }
+        let v = ggpt_train::evaluate::validate_chunks(&model, &cfg, &val, &data.manifest.scenes, &device, a.max_tokens_per_forward)?;
+        println!(
+            "{} val chunks: AUC@5 input {:.1} -> refined {:.1} ({:+.1}); AUC@10 {:.1} -> {:.1} ({:+.1}); val loss {:.4}",
+            v.chunks,
+            v.input_auc5,
+            v.refined_auc5,
+            v.refined_auc5 - v.input_auc5,
+            v.input_auc10,
+            v.refined_auc10,
+            v.refined_auc10 - v.input_auc10,
+            v.loss
+        );
+        if let Some(out) = &a.out {
+            let j = serde_json::json!({"chunk_level": v, "model": a.model, "data": dir});
+            ggpt_core::io::atomic::write_atomic(out, |w| w.write_all(serde_json::to_string_pretty(&j).unwrap_or_default().as_bytes()))?;
+        }
+        return Ok(());
+    }
     // flag > the model's training sampler (inference.json / chunk-set manifest) > default
     let m = model_chunking.unwrap_or_default();
     let chunking = ChunkingArgs {
@@ -756,6 +785,7 @@ fn default_run(out: &Path) -> Result<()> {
 }
 
 fn main() -> Result<()> {
+    ggpt_model::device::tune_allocator();
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")))

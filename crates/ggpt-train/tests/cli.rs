@@ -70,6 +70,11 @@ fn default_run_then_export_reloads_strictly() {
     let inf: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(export.join("inference.json")).unwrap()).unwrap();
     assert_eq!(inf["chunking"], serde_json::json!({"chunk_size": 0.2, "max_pixels": 1500, "min_dlt": 20, "min_pixels": 200}));
 
+    // chunk-level validation of the exported folder on the recorded val chunks
+    let out = run_ok(bin().args(["eval", "--model"]).arg(&export).arg("--data").arg(dir.path().join("chunkset")).args(["--chunk-level", "2"]));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("2 val chunks: AUC@5 input"), "{text}");
+
     // whole-scene evaluation of the exported folder on a fresh synthetic scene, sampler from
     // inference.json except the flag given
     let report = dir.path().join("eval.json");

@@ -85,6 +85,7 @@ impl MeasuredRefiner for Budgeted {
 }
 
 fn main() -> Result<()> {
+    ggpt_model::device::tune_allocator();
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")))

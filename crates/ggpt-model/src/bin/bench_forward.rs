@@ -17,7 +17,7 @@ use ggpt_model::{Ggpt, GgptConfig, PreparedBatch};
 
 fn usage() -> ! {
     eprintln!(
-        "usage: bench_forward [--tokens N[,N...]] [--device cpu|ndarray|flex|wgpu] [--threads T] [--preset released|small|tiny] [--repeat R] [--profile]"
+        "usage: bench_forward [--tokens N[,N...]] [--device cpu|ndarray|flex|wgpu] [--threads T] [--preset released|small|tiny] [--repeat R] [--profile] [--default-allocator]"
     );
     std::process::exit(2)
 }
@@ -29,6 +29,7 @@ fn main() {
     let mut preset = "released".to_string();
     let mut repeat = 1usize;
     let mut profile = false;
+    let mut default_allocator = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut val = || args.next().unwrap_or_else(|| usage());
@@ -41,8 +42,12 @@ fn main() {
             "--preset" => preset = val(),
             "--repeat" => repeat = val().parse().unwrap_or_else(|_| usage()),
             "--profile" => profile = true,
+            "--default-allocator" => default_allocator = true,
             _ => usage(),
         }
+    }
+    if !default_allocator {
+        ggpt_model::device::tune_allocator();
     }
     if threads > 0 {
         // SAFETY: no other thread exists yet.

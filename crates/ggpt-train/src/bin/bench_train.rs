@@ -62,6 +62,7 @@ fn train_chunk(pixels: usize, seed: u64) -> TrainChunk {
 }
 
 fn main() -> Result<()> {
+    ggpt_model::device::tune_allocator();
     let args = Args::parse();
     if args.steps == 0 {
         bail!("--steps must be at least 1");
