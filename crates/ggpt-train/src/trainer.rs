@@ -256,7 +256,9 @@ pub fn recalibrate_batch_norm(model: Ggpt, cfg: &GgptConfig, chunks: &[TrainChun
         return Ok(model);
     }
     let by_scene = by_scene_of(chunks);
-    let mut model = model.fork(device).train();
+    // Training mode on the autodiff device selects BatchNorm's batch-statistics path; without
+    // gradients no graph is recorded, so a forward costs inference memory.
+    let mut model = model.fork(device).train().no_grad();
     model.set_drop_path(0.0);
     for k in 0..batches {
         for bn in model.batch_norms_mut() {
