@@ -134,6 +134,20 @@ struct CommonArgs {
     /// Write the COLMAP model as text instead of binary.
     #[arg(long)]
     colmap_text: bool,
+    /// `points3D` of the COLMAP model: `refined` (the confidence-filtered refined points, a
+    /// seeded subset of at most --colmap-max-points) or `none` (cameras and images only).
+    #[arg(long, default_value = "refined", value_parser = ["refined", "none"])]
+    colmap_points: String,
+    /// Maximum number of COLMAP `points3D` (seeded uniform subset of the filtered points).
+    #[arg(long, default_value_t = ggpt_scene::export::DEFAULT_COLMAP_MAX_POINTS)]
+    colmap_max_points: usize,
+    /// Resolution of the COLMAP cameras: `ff` (the feed-forward resolution) or `WIDTHxHEIGHT` of
+    /// the original images (focal lengths scaled per axis, principal point at the centre).
+    #[arg(long, default_value = "ff", value_name = "ff|WxH")]
+    colmap_resolution: String,
+    /// COLMAP `SIMPLE_PINHOLE` cameras (one focal length) instead of `PINHOLE`.
+    #[arg(long)]
+    colmap_simple_pinhole: bool,
     /// Skip the per-view PNG error maps (written only when the scene has ground truth).
     #[arg(long)]
     no_error_maps: bool,
@@ -223,6 +237,18 @@ fn configure_threads(threads: usize) -> Result<()> {
     Ok(())
 }
 
+/// `--colmap-resolution`: `ff` -> `None`, `WIDTHxHEIGHT` -> `Some((height, width))`.
+fn parse_colmap_resolution(s: &str) -> Result<Option<(usize, usize)>> {
+    if s == "ff" {
+        return Ok(None);
+    }
+    let parsed = s.split_once(['x', 'X']).and_then(|(w, h)| Some((w.trim().parse::<usize>().ok()?, h.trim().parse::<usize>().ok()?)));
+    match parsed {
+        Some((w, h)) if w > 0 && h > 0 => Ok(Some((h, w))),
+        _ => bail!("--colmap-resolution {s:?}: expected `ff` or WIDTHxHEIGHT with positive integers (e.g. 1036x784)"),
+    }
+}
+
 fn run_options(c: &CommonArgs, seed: u64, chunk_seed: Option<u64>) -> Result<RunOptions> {
     if !(0.0..=1.0).contains(&c.conf_quantile) {
         bail!("--conf-quantile {} must be in [0, 1]", c.conf_quantile);
@@ -242,7 +268,14 @@ fn run_options(c: &CommonArgs, seed: u64, chunk_seed: Option<u64>) -> Result<Run
         conf_quantile: c.conf_quantile,
         max_points: c.max_points,
         seed,
-        colmap: Some(ColmapExportOptions { text: c.colmap_text, ..ColmapExportOptions::default() }),
+        colmap: Some(ColmapExportOptions {
+            text: c.colmap_text,
+            points: c.colmap_points == "refined",
+            max_points: c.colmap_max_points,
+            resolution: parse_colmap_resolution(&c.colmap_resolution)?,
+            simple_pinhole: c.colmap_simple_pinhole,
+            ..ColmapExportOptions::default()
+        }),
         ..ExportOptions::default()
     };
     Ok(RunOptions {

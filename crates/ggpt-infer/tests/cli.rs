@@ -181,3 +181,53 @@ fn demo_resolves_chunk_settings_from_model_folder_and_flags() {
         assert_eq!(py["num_observations"], 0);
     }
 }
+
+/// The COLMAP flags of `run`: `--colmap-points none` writes cameras and images only,
+/// `--colmap-resolution WxH` rescales the cameras to the original images, and
+/// `--colmap-simple-pinhole` writes one focal length; a malformed resolution is an error.
+#[test]
+fn run_colmap_flags_shape_the_model() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let device = ggpt_model::device::device_from_name("ndarray").unwrap();
+    let w = dir.path().join("tiny.bpk");
+    ggpt_model::weights::save_burnpack(&ggpt_model::Ggpt::new(&ggpt_model::GgptConfig::tiny(), &device), &w).unwrap();
+    let cfg = ggpt_synth::SynthConfig { views: 3, width: 56, height: 42, seed: 4, matches: true, ..ggpt_synth::SynthConfig::default() };
+    let scene = ggpt_synth::generate(&cfg).unwrap().scene;
+    let sdir = dir.path().join("scene");
+    ggpt_core::io::scene_dir::write_scene(&sdir, &scene).unwrap();
+    let run = |out: &std::path::Path, extra: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_ggpt-infer"))
+            .args(["run", "--scene"])
+            .arg(&sdir)
+            .arg("--weights")
+            .arg(&w)
+            .args(["--preset", "tiny", "--device", "ndarray", "--quiet", "--no-error-maps", "--min-chunk-dlt", "40", "--min-chunk-pixels", "300", "--out"])
+            .arg(out)
+            .args(extra)
+            .output()
+            .expect("runs")
+    };
+    let bad = run(&dir.path().join("bad"), &["--colmap-resolution", "112by84"]);
+    let stderr = String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success() && stderr.contains("--colmap-resolution") && stderr.contains("112by84"), "{stderr}");
+
+    let out = dir.path().join("out");
+    let o = run(&out, &["--colmap-text", "--colmap-points", "none", "--colmap-resolution", "112x84", "--colmap-simple-pinhole"]);
+    assert!(o.status.success(), "ggpt-infer run failed: {}", String::from_utf8_lossy(&o.stderr));
+    let sparse = out.join("sparse/0");
+    let cameras = std::fs::read_to_string(sparse.join("cameras.txt")).unwrap();
+    let cam: Vec<&str> = cameras.lines().find(|l| !l.starts_with('#')).unwrap().split_whitespace().collect();
+    assert_eq!(&cam[1..4], &["SIMPLE_PINHOLE", "112", "84"], "{cameras}");
+    // Principal point at the centre of the original image: (W-1)/2, (H-1)/2 in the project's
+    // pixel-centre convention, + 0.5 in COLMAP's (docs/conventions.md).
+    assert_eq!((cam[5].parse::<f64>().unwrap(), cam[6].parse::<f64>().unwrap()), (56.0, 42.0), "{cameras}");
+    let points = std::fs::read_to_string(sparse.join("points3D.txt")).unwrap();
+    assert_eq!(points.lines().filter(|l| !l.starts_with('#')).count(), 0, "{points}");
+    let test = "run_colmap_flags_shape_the_model";
+    if common::python_module_available(test, "pycolmap", "pycolmap==4.2.1", "the rescaled COLMAP model") {
+        let py = common::run_python_check("check_colmap_model.py", &sparse);
+        assert_eq!(py["ok"], true, "{py}");
+        assert_eq!(py["num_images"], 3);
+        assert_eq!(py["num_points3D"], 0, "{py}");
+    }
+}

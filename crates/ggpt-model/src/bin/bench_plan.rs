@@ -5,47 +5,21 @@
 //! ```text
 //! cargo run --release -p ggpt-model --bin bench_plan -- --tokens 100000,400000 --repeat 3
 //! ```
-//! `--tokens` counts level-0 tokens (pixels + DLT tokens, 1/3 of the pixels carry guidance);
+//! `--tokens` counts level-0 tokens (pixels + DLT tokens; 30 % of the pixels carry guidance, the
+//! cloud of `ggpt_model::bench::surface_chunk`);
 //! `--threads` sets the rayon pool size (default: all cores). "CPU s" columns are the mean process
 //! CPU time (all threads, 10 ms resolution) per run, meaningful on a machine shared with other
 //! jobs; the wall time is the minimum over repeats.
 
 use std::time::Instant;
 
+use ggpt_model::bench::{pixels_for_tokens, surface_chunk};
 use ggpt_model::plan::serialize::{compute_codes, orders_and_inverses, serialization_depth};
-use ggpt_model::plan::{ChunkInput, PlanConfig, build_conv_table, encode_chunk, grid_coord, plan_batch, pool_level};
-
-/// Every `GUIDANCE_EVERY`-th pixel carries a DLT point.
-const GUIDANCE_EVERY: usize = 3;
+use ggpt_model::plan::{PlanConfig, build_conv_table, encode_chunk, grid_coord, plan_batch, pool_level};
 
 fn usage() -> ! {
     eprintln!("usage: bench_plan [--tokens N[,N...]] [--repeat R] [--threads T]");
     std::process::exit(2)
-}
-
-/// A wavy surface seen from a camera (`k` pixels on a grid, normalised chunk coordinates) with
-/// guidance points close to their dense points, so voxels hold duplicates as in real chunks.
-fn surface_chunk(k: usize, seed: u64) -> ChunkInput {
-    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    let mut next = move || {
-        s ^= s << 13;
-        s ^= s >> 7;
-        s ^= s << 17;
-        (s >> 11) as f32 / (1u64 << 53) as f32
-    };
-    let w = (k as f32).sqrt().ceil() as usize;
-    let mut c = ChunkInput::default();
-    for i in 0..k {
-        let (u, v) = ((i % w) as f32 / w as f32 * 2.0 - 1.0, (i / w) as f32 / w as f32 * 2.0 - 1.0);
-        let z = 0.35 * (2.5 * u).sin() * (1.7 * v).cos() + 0.1 * (7.0 * u * v).sin();
-        let p = [0.98 * u + 0.002 * next(), 0.98 * v, z];
-        c.ff_pts.push(p);
-        c.ff_conf.push(1.0 + 5.0 * next());
-        let g = i % GUIDANCE_EVERY == 0;
-        c.geo_msk.push(g);
-        c.geo_pts.push([p[0] + 0.004 * (next() - 0.5), p[1] + 0.004 * (next() - 0.5), p[2]]);
-    }
-    c
 }
 
 /// CPU time (user + system, all threads) of this process in seconds, from `/proc/self/stat`
@@ -101,8 +75,7 @@ fn main() {
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
     for &n in &tokens {
-        let k = n * GUIDANCE_EVERY / (GUIDANCE_EVERY + 1);
-        let chunk = surface_chunk(k, 42);
+        let chunk = surface_chunk(pixels_for_tokens(n), 42);
         let (_, c_enc, feats) = time(repeat, || encode_chunk(&chunk));
         let feats = feats.unwrap_or_else(|e| {
             eprintln!("encode failed: {e}");
