@@ -57,7 +57,13 @@ pub struct DemoReport {
 
 /// Resolves the model, with a clear message when the shipped model is missing.
 fn demo_model(opts: &DemoOptions) -> Result<ModelSpec> {
-    resolve_model(&opts.weights, opts.model_config.as_deref(), opts.preset.as_deref()).map_err(|e| match e {
+    // The built-in default is `<crate>/../../models/...`: show it without the `..`.
+    let weights = if opts.weights == std::path::Path::new(crate::model_load::SHIPPED_MODEL_DIR) {
+        std::fs::canonicalize(&opts.weights).unwrap_or_else(|_| opts.weights.clone())
+    } else {
+        opts.weights.clone()
+    };
+    resolve_model(&weights, opts.model_config.as_deref(), opts.preset.as_deref()).map_err(|e| match e {
         InferError::Missing { what, path } => InferError::Missing {
             what: format!(
                 "{what} of the demo model (the shipped model lives in models/ggpt-synth-small/ with model.safetensors and model_config.json; pass --weights FILE [--model-config FILE] to use another)"

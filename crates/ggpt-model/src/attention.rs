@@ -18,8 +18,9 @@ use burn::nn::{Linear, LinearConfig};
 use burn::tensor::activation::softmax;
 use burn::tensor::module::attention;
 use burn::tensor::ops::AttentionModuleOptions;
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Tensor, TensorData};
 
+use crate::host_attention::{WindowShape, window_attention};
 use crate::ops::{gather_rows, is_cpu_device};
 use crate::prepared::AttnIndex;
 use crate::profile;
@@ -56,22 +57,22 @@ impl WindowAttention {
     /// [`Self::forward`], timing its parts under `{stage}.attn.{qkv,core,proj}` when
     /// [`crate::profile`] is on.
     ///
-    /// On a CPU device without autodiff (inference) the core is Burn's fused
-    /// `module::attention` (flex: flash attention with online softmax, no `[W, H, L, L]`
-    /// score tensor); otherwise the explicit `softmax(q k^T s) v` that autodiff differentiates.
+    /// On a CPU device without autodiff (inference) the core is the host kernel of
+    /// [`crate::host_attention`] (GEMM blocks + vectorised softmax, no `[W, H, L, L]` score
+    /// tensor); otherwise the explicit `softmax(q k^T s) v` that autodiff differentiates.
     pub fn forward_profiled(&self, x: Tensor<2>, index: &AttnIndex, stage: &str) -> Tensor<2> {
         let [_, c] = x.dims();
         let h = self.num_heads;
         let d = c / h;
         let scale = (d as f64).powf(-0.5);
         let device = x.device();
-        let fused = !device.is_autodiff() && is_cpu_device(&device);
+        let host = !device.is_autodiff() && is_cpu_device(&device);
         let mut outs = Vec::new();
         for group in &index.groups {
             let l = group.len;
             let per_window = h * l * l;
-            // The fused kernel needs no score buffer: only bound the gathered rows.
-            let step = if fused {
+            // The host kernel needs no full score buffer: only bound the gathered rows.
+            let step = if host {
                 (SCORE_BUDGET_FLOATS / (l * 3 * c).max(1)).max(1)
             } else {
                 (SCORE_BUDGET_FLOATS / per_window.max(1)).max(1)
@@ -81,25 +82,13 @@ impl WindowAttention {
                 let nw = step.min(group.num_windows - w0);
                 let idx = group.gather.clone().narrow(0, w0 * l, nw * l);
                 // qkv is row-wise: project only the gathered rows (no [N, 3C] buffer).
-                let rows = profile::scope(
-                    || format!("{stage}.attn.qkv"),
-                    || self.qkv.forward(gather_rows(x.clone(), idx)).reshape([nw, l, 3, h, d]),
-                );
+                let rows = profile::scope(|| format!("{stage}.attn.qkv"), || self.qkv.forward(gather_rows(x.clone(), idx)));
+                let shape = WindowShape { windows: nw, len: l, heads: h, head_dim: d };
                 let o = profile::scope(
                     || format!("{stage}.attn.core"),
-                    || {
-                        // [3, W, H, L, d]: one permutation, then q, k, v are views.
-                        let qkv = rows.permute([2, 0, 3, 1, 4]);
-                        let part = |i: usize| qkv.clone().narrow(0, i, 1).reshape([nw, h, l, d]);
-                        let (q, k, v) = (part(0), part(1), part(2));
-                        let o = if fused {
-                            let opts = AttentionModuleOptions { scale: Some(scale), softcap: None, is_causal: false };
-                            attention(q, k, v, None, None, opts)
-                        } else {
-                            let scores = q.mul_scalar(scale).matmul(k.swap_dims(2, 3));
-                            softmax(scores, 3).matmul(v)
-                        };
-                        o.swap_dims(1, 2).reshape([nw * l, c])
+                    || match host.then(|| host_core(&rows, shape, scale as f32)).flatten() {
+                        Some(out) => Tensor::from_data(TensorData::new(out, [nw * l, c]), &device),
+                        None => tensor_core(rows, shape, scale, host),
                     },
                 );
                 outs.push(o);
@@ -116,4 +105,31 @@ impl WindowAttention {
         };
         profile::scope(|| format!("{stage}.attn.proj"), || self.proj.forward(gather_rows(all, index.take.clone())))
     }
+}
+
+/// The host kernel on the `[W L, 3C]` projection rows; `None` when they cannot be read back as
+/// f32 (the caller then uses the tensor formulation).
+fn host_core(rows: &Tensor<2>, shape: WindowShape, scale: f32) -> Option<Vec<f32>> {
+    let data = rows.clone().into_data().convert::<f32>();
+    let v = data.as_slice::<f32>().ok()?;
+    window_attention(v, shape, scale)
+}
+
+/// The tensor formulation of the core: `rows [W L, 3C] -> [W L, C]`. `fused` uses Burn's
+/// `module::attention` (no score tensor, not differentiated here), otherwise the explicit
+/// `softmax(q k^T s) v` that autodiff differentiates.
+fn tensor_core(rows: Tensor<2>, shape: WindowShape, scale: f64, fused: bool) -> Tensor<2> {
+    let WindowShape { windows: nw, len: l, heads: h, head_dim: d } = shape;
+    // [3, W, H, L, d]: one permutation, then q, k, v are views.
+    let qkv = rows.reshape([nw, l, 3, h, d]).permute([2, 0, 3, 1, 4]);
+    let part = |i: usize| qkv.clone().narrow(0, i, 1).reshape([nw, h, l, d]);
+    let (q, k, v) = (part(0), part(1), part(2));
+    let o = if fused {
+        let opts = AttentionModuleOptions { scale: Some(scale), softcap: None, is_causal: false };
+        attention(q, k, v, None, None, opts)
+    } else {
+        let scores = q.mul_scalar(scale).matmul(k.swap_dims(2, 3));
+        softmax(scores, 3).matmul(v)
+    };
+    o.swap_dims(1, 2).reshape([nw * l, shape.channels()])
 }

@@ -17,6 +17,7 @@ pub mod drop_path;
 pub mod error;
 pub mod gelu;
 pub mod head;
+pub mod host_attention;
 pub mod infer;
 pub mod linear_bn;
 pub mod model;

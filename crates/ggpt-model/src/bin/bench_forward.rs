@@ -6,6 +6,8 @@
 //! cargo run --release -p ggpt-model --bin bench_forward -- --tokens 26000 --device flex --threads 1
 //! ```
 //! Peak RSS is per process: run one size per invocation for a clean memory figure.
+//! `--chunks N` splits the tokens of a row over `N` chunks (different seeds) in one forward, as
+//! the scene pipeline batches chunks.
 
 use std::time::Instant;
 
@@ -17,7 +19,7 @@ use ggpt_model::{Ggpt, GgptConfig, PreparedBatch};
 
 fn usage() -> ! {
     eprintln!(
-        "usage: bench_forward [--tokens N[,N...]] [--device cpu|ndarray|flex|wgpu] [--threads T] [--preset released|small|tiny] [--repeat R] [--profile] [--default-allocator]"
+        "usage: bench_forward [--tokens N[,N...]] [--device cpu|ndarray|flex|wgpu] [--threads T] [--preset released|small|tiny] [--repeat R] [--chunks N] [--profile] [--default-allocator]"
     );
     std::process::exit(2)
 }
@@ -28,6 +30,7 @@ fn main() {
     let mut threads = 0usize;
     let mut preset = "released".to_string();
     let mut repeat = 1usize;
+    let mut chunks = 1usize;
     let mut profile = false;
     let mut default_allocator = false;
     let mut args = std::env::args().skip(1);
@@ -41,6 +44,7 @@ fn main() {
             "--threads" => threads = val().parse().unwrap_or_else(|_| usage()),
             "--preset" => preset = val(),
             "--repeat" => repeat = val().parse().unwrap_or_else(|_| usage()),
+            "--chunks" => chunks = val().parse().ok().filter(|&c: &usize| c > 0).unwrap_or_else(|| usage()),
             "--profile" => profile = true,
             "--default-allocator" => default_allocator = true,
             _ => usage(),
@@ -66,14 +70,14 @@ fn main() {
     });
     ggpt_model::profile::set_enabled(profile);
     let model = Ggpt::new(&cfg, &device);
-    println!("| tokens | pixels | device | threads | plan s | upload s | forward s | peak RSS MiB |");
-    println!("|---|---|---|---|---|---|---|---|");
+    println!("| tokens | chunks | pixels | device | threads | plan s | upload s | forward s | peak RSS MiB |");
+    println!("|---|---|---|---|---|---|---|---|---|");
     for &n in &tokens {
         let k = pixels_for_tokens(n);
-        let chunk = surface_chunk(k, 7);
+        let inputs: Vec<_> = (0..chunks).map(|i| surface_chunk(k / chunks, 7 + i as u64)).collect();
         for _ in 0..repeat {
             let t0 = Instant::now();
-            let plan = match plan_batch(std::slice::from_ref(&chunk), &plan_config(&cfg)) {
+            let plan = match plan_batch(&inputs, &plan_config(&cfg)) {
                 Ok(p) => p,
                 Err(e) => {
                     eprintln!("plan: {e}");
@@ -98,7 +102,7 @@ fn main() {
                 }
             }
             println!(
-                "| {} | {k} | {device_name} | {} | {t_plan:.2} | {t_up:.2} | {t_fwd:.2} | {:.0} |",
+                "| {} | {chunks} | {k} | {device_name} | {} | {t_plan:.2} | {t_up:.2} | {t_fwd:.2} | {:.0} |",
                 batch.num_tokens,
                 if threads == 0 { "all".to_string() } else { threads.to_string() },
                 peak_rss_mib()
