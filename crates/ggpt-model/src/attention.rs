@@ -110,7 +110,7 @@ impl WindowAttention {
 /// The host kernel on the `[W L, 3C]` projection rows; `None` when they cannot be read back as
 /// f32 (the caller then uses the tensor formulation).
 fn host_core(rows: &Tensor<2>, shape: WindowShape, scale: f32) -> Option<Vec<f32>> {
-    let data = rows.clone().into_data().convert::<f32>();
+    let data = rows.clone().try_into_data().ok()?.convert::<f32>();
     let v = data.as_slice::<f32>().ok()?;
     window_attention(v, shape, scale)
 }

@@ -198,8 +198,8 @@ impl Ggpt {
 impl GgptOutput {
     /// Reads the outputs back and splits them per chunk (network.md §10 table).
     pub fn to_chunks(&self, batch: &PreparedBatch) -> Result<Vec<ChunkOutput>> {
-        let xyz = read_f32(&self.tokens_xyz.to_data(), "tokens_xyz")?;
-        let conf = read_f32(&self.tokens_conf.to_data(), "tokens_conf")?;
+        let xyz = read_tensor_f32(&self.tokens_xyz, "tokens_xyz")?;
+        let conf = read_tensor_f32(&self.tokens_conf, "tokens_conf")?;
         let n = batch.num_tokens;
         if xyz.len() != 3 * n || conf.len() != n {
             return Err(ModelError::Plan(format!("outputs have {} / {} values for {n} tokens", xyz.len(), conf.len())));
@@ -230,6 +230,17 @@ impl GgptOutput {
         }
         Ok(out)
     }
+}
+
+/// Reads a tensor back to the host as `Vec<f32>`. A failed device execution (e.g. a GPU buffer
+/// allocation above the device's limits or out of memory) becomes [`ModelError::Readback`]
+/// naming the tensor, with a hint to run smaller forwards, instead of a panic.
+pub fn read_tensor_f32<const D: usize>(t: &burn::tensor::Tensor<D>, name: &str) -> Result<Vec<f32>> {
+    let data = t.try_to_data().map_err(|e| ModelError::Readback {
+        name: name.to_string(),
+        message: format!("device execution failed ({e}); if the device ran out of memory or hit a buffer-size limit, run smaller forwards (--max-tokens-per-forward / smaller chunks)"),
+    })?;
+    read_f32(&data, name)
 }
 
 /// Converts tensor data to `Vec<f32>`, naming the tensor on failure.

@@ -59,7 +59,7 @@ pub fn validate_chunks(model: &Ggpt, cfg: &GgptConfig, chunks: &[TrainChunk], sc
         let batch = ggpt_model::infer::prepare_chunks(cfg, &inputs, device)?;
         let out = model.forward(&batch);
         let parts = loss(out.tokens_xyz.clone(), out.tokens_conf.clone(), &HostTargets::new(&group).upload(device));
-        loss_sum += ggpt_model::model::read_f32(&parts.total.into_data(), "val loss")?.first().copied().unwrap_or(f32::NAN) as f64;
+        loss_sum += ggpt_model::model::read_tensor_f32(&parts.total, "val loss")?.first().copied().unwrap_or(f32::NAN) as f64;
         forwards += 1;
         for (c, o) in group.iter().zip(out.to_chunks(&batch)?) {
             let mpu = scenes.get(c.scene).map(|s| s.metres_per_unit).ok_or_else(|| TrainError::Invalid(format!("chunk of unknown scene {}", c.scene)))?;

@@ -187,7 +187,7 @@ pub fn clip_global_norm(model: &Ggpt, grads: &mut GradientsParams, max_norm: Opt
         return Ok(0.0);
     }
     let total = Tensor::cat(sq.parts, 0).sum();
-    let norm = (ggpt_model::model::read_f32(&total.into_data(), "grad norm")?.first().copied().unwrap_or(0.0) as f64).sqrt();
+    let norm = (ggpt_model::model::read_tensor_f32(&total, "grad norm")?.first().copied().unwrap_or(0.0) as f64).sqrt();
     if let Some(max) = max_norm
         && norm > max
     {
@@ -223,7 +223,7 @@ pub fn train_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig, ch
     let batch = ggpt_model::infer::prepare_chunks(cfg, &inputs, device)?;
     let out = model.forward(&batch);
     let parts = loss(out.tokens_xyz, out.tokens_conf, &HostTargets::new(chunks).upload(device));
-    let vals = ggpt_model::model::read_f32(&Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0).into_data(), "loss")?;
+    let vals = ggpt_model::model::read_tensor_f32(&Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0), "loss")?;
     let (total, conf, id) = (vals.first().copied().unwrap_or(f32::NAN), vals.get(1).copied().unwrap_or(f32::NAN), vals.get(2).copied().unwrap_or(f32::NAN));
     if !total.is_finite() {
         return Err(TrainError::Invalid(format!("non-finite loss {total} (L_conf {conf}, L_id {id})")));

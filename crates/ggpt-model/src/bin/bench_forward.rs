@@ -93,7 +93,10 @@ fn main() {
             let t_up = t1.elapsed().as_secs_f64();
             let t2 = Instant::now();
             let out = model.forward(&batch);
-            let conf = out.tokens_conf.to_data();
+            let conf = ggpt_model::model::read_tensor_f32(&out.tokens_conf, "tokens_conf").unwrap_or_else(|e| {
+                eprintln!("forward of {n} tokens failed: {e}");
+                std::process::exit(1)
+            });
             let t_fwd = t2.elapsed().as_secs_f64();
             drop(conf);
             if profile {
