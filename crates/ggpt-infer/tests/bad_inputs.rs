@@ -2,6 +2,8 @@
 //! exit and a message naming the file / the problem (no panic), and the empty-guidance scene
 //! follows its documented behaviour (error, or the unrefined points with `--allow-unrefined`).
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -18,12 +20,9 @@ struct Fixture {
 /// A tiny random-init network and a 3-view 56 x 42 synthetic scene with matches and SfM.
 fn fixture() -> Fixture {
     let dir = tempfile::tempdir().expect("tempdir");
-    let device = ggpt_model::device::device_from_name("ndarray").unwrap();
     let weights = dir.path().join("tiny.bpk");
-    ggpt_model::weights::save_burnpack(&ggpt_model::Ggpt::new(&ggpt_model::GgptConfig::tiny(), &device), &weights).unwrap();
-    let cfg = ggpt_synth::SynthConfig { views: 3, width: 56, height: 42, seed: 5, matches: true, ..ggpt_synth::SynthConfig::default() };
-    let scene = ggpt_synth::generate(&cfg).unwrap().scene;
-    Fixture { dir, weights, scene }
+    common::save_tiny_weights(&weights);
+    Fixture { dir, weights, scene: common::tiny_scene(5) }
 }
 
 fn run(scene: &Path, weights: &Path, out: &Path, extra: &[&str]) -> Output {

@@ -104,12 +104,10 @@ fn bad_inference_json_and_chunk_flags_are_reported() {
 #[test]
 fn run_resolves_chunk_settings_flag_over_model_over_default() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let device = ggpt_model::device::device_from_name("ndarray").unwrap();
     let w = dir.path().join("tiny.bpk");
-    ggpt_model::weights::save_burnpack(&ggpt_model::Ggpt::new(&ggpt_model::GgptConfig::tiny(), &device), &w).unwrap();
+    common::save_tiny_weights(&w);
     std::fs::write(dir.path().join("inference.json"), r#"{"chunking": {"max_pixels": 5000, "min_dlt": 10, "min_pixels": 300}}"#).unwrap();
-    let cfg = ggpt_synth::SynthConfig { views: 3, width: 56, height: 42, seed: 3, matches: true, ..ggpt_synth::SynthConfig::default() };
-    let scene = ggpt_synth::generate(&cfg).unwrap().scene;
+    let scene = common::tiny_scene(3);
     let sdir = dir.path().join("scene");
     ggpt_core::io::scene_dir::write_scene(&sdir, &scene).unwrap();
     let out = dir.path().join("out");
@@ -147,10 +145,9 @@ fn run_resolves_chunk_settings_flag_over_model_over_default() {
 #[test]
 fn demo_resolves_chunk_settings_from_model_folder_and_flags() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let device = ggpt_model::device::device_from_name("ndarray").unwrap();
     let model_dir = dir.path().join("model");
     std::fs::create_dir_all(&model_dir).unwrap();
-    ggpt_model::weights::save_burnpack(&ggpt_model::Ggpt::new(&ggpt_model::GgptConfig::tiny(), &device), &model_dir.join("model.bpk")).unwrap();
+    common::save_tiny_weights(&model_dir.join("model.bpk"));
     std::fs::write(model_dir.join("inference.json"), r#"{"chunking": {"chunk_size": 0.25, "min_dlt": 40, "min_pixels": 300}}"#).unwrap();
     let out = dir.path().join("out");
     let o = Command::new(env!("CARGO_BIN_EXE_ggpt-infer"))
@@ -188,11 +185,9 @@ fn demo_resolves_chunk_settings_from_model_folder_and_flags() {
 #[test]
 fn run_colmap_flags_shape_the_model() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let device = ggpt_model::device::device_from_name("ndarray").unwrap();
     let w = dir.path().join("tiny.bpk");
-    ggpt_model::weights::save_burnpack(&ggpt_model::Ggpt::new(&ggpt_model::GgptConfig::tiny(), &device), &w).unwrap();
-    let cfg = ggpt_synth::SynthConfig { views: 3, width: 56, height: 42, seed: 4, matches: true, ..ggpt_synth::SynthConfig::default() };
-    let scene = ggpt_synth::generate(&cfg).unwrap().scene;
+    common::save_tiny_weights(&w);
+    let scene = common::tiny_scene(4);
     let sdir = dir.path().join("scene");
     ggpt_core::io::scene_dir::write_scene(&sdir, &scene).unwrap();
     let run = |out: &std::path::Path, extra: &[&str]| {

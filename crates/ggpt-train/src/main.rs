@@ -482,7 +482,7 @@ fn train(a: &TrainArgs) -> Result<()> {
     let run_cfg = serde_json::json!({"options": opts, "data": a.data, "device": a.device, "init_from": a.init_from,
         "parameters": ggpt_model::weights::num_trainable_params(&model),
         "batchnorm": "batch statistics over all chunks of one forward (no micro-batching)"});
-    ggpt_core::io::atomic::write_atomic(&cfg_path, |w| w.write_all(serde_json::to_string_pretty(&run_cfg).unwrap_or_default().as_bytes()))?;
+    ggpt_scene::export::write_json(&cfg_path, &run_cfg)?;
     tracing::info!("training {} parameters on {} ({} steps from {start})", ggpt_model::weights::num_trainable_params(&model), a.device, opts.steps);
     let stop = Arc::new(AtomicBool::new(false));
     install_ctrl_c(&stop);
@@ -594,7 +594,7 @@ fn eval(a: &EvalArgs) -> Result<()> {
         );
         if let Some(out) = &a.out {
             let j = serde_json::json!({"chunk_level": v, "model": a.model, "data": dir});
-            ggpt_core::io::atomic::write_atomic(out, |w| w.write_all(serde_json::to_string_pretty(&j).unwrap_or_default().as_bytes()))?;
+            ggpt_scene::export::write_json(out, &j)?;
         }
         return Ok(());
     }
@@ -667,7 +667,7 @@ fn eval(a: &EvalArgs) -> Result<()> {
             "synthetic": a.synthetic_scenes.map(|n| serde_json::json!({"scenes": n, "first_seed": a.synth.first_seed, "views": a.synth.views,
                 "width": a.synth.width, "height": a.synth.height, "kinds": a.synth.kinds})),
             "chunking": chunking});
-        ggpt_core::io::atomic::write_atomic(out, |w| w.write_all(serde_json::to_string_pretty(&v).unwrap_or_default().as_bytes()))?;
+        ggpt_scene::export::write_json(out, &v)?;
     }
     Ok(())
 }

@@ -394,12 +394,8 @@ pub fn run(o: &TrainOptions, ctx: RunContext<'_>) -> Result<RunResult> {
     let mut val = ctx.data.load_split(Split::Val)?;
     val.truncate(o.val_chunks);
     let scenes: &[SceneEntry] = &ctx.data.manifest.scenes;
-    let mut by_scene = vec![Vec::new(); scenes.len()];
-    for (i, c) in train.iter().enumerate() {
-        if let Some(v) = by_scene.get_mut(c.scene) {
-            v.push(i);
-        }
-    }
+    // (shards are parsed against the manifest: every chunk's scene index is < scenes.len())
+    let by_scene = by_scene_of(&train);
     let metrics_path = ctx.out.join("metrics.jsonl");
     let plain = ctx.device.clone().without_autodiff();
     let t0 = Instant::now();

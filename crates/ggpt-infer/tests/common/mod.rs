@@ -1,4 +1,5 @@
-//! Running the repository's Python readers (`scripts/check_ply.py`, `scripts/check_colmap_model.py`)
+//! Shared test setup: a tiny random-init network saved as burnpack and a tiny synthetic scene
+//! with matches ([`save_tiny_weights`], [`tiny_scene`]); and running the repository's Python readers (`scripts/check_ply.py`, `scripts/check_colmap_model.py`)
 //! from tests, with the convention of `crates/ggpt-sfm/tests/colmap_python.rs`: when `python3` or
 //! the module is missing, the check is skipped with a loud warning on stderr, unless
 //! `GGPT_REQUIRE_PYTHON_READERS=1` (set by CI), in which case the test fails.
@@ -45,4 +46,17 @@ pub fn run_python_check(script_name: &str, path: &Path) -> serde_json::Value {
         String::from_utf8_lossy(&out.stderr)
     );
     serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{script_name} printed no JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
+}
+
+/// Saves a freshly initialised `GgptConfig::tiny()` network (random weights) as burnpack at
+/// `path`.
+pub fn save_tiny_weights(path: &Path) {
+    let device = ggpt_model::device::device_from_name("ndarray").unwrap();
+    ggpt_model::weights::save_burnpack(&ggpt_model::Ggpt::new(&ggpt_model::GgptConfig::tiny(), &device), path).unwrap();
+}
+
+/// A 3-view 56 x 42 `ggpt-synth` room with simulated matches (no SfM result), from `seed`.
+pub fn tiny_scene(seed: u64) -> ggpt_core::Scene {
+    let cfg = ggpt_synth::SynthConfig { views: 3, width: 56, height: 42, seed, matches: true, ..ggpt_synth::SynthConfig::default() };
+    ggpt_synth::generate(&cfg).unwrap().scene
 }
