@@ -48,7 +48,8 @@ pub struct FeedForward {
     pub points: Vec<f32>,
     /// `[N, h, w]` raw confidence (VGGT `1 + exp` scale, ≥ 1).
     pub conf: Vec<f32>,
-    /// Feed-forward cameras (principal point at the image centre).
+    /// Feed-forward cameras (ff pixels, pixel-centre convention; principal point as the
+    /// feed-forward model gives it, e.g. VGGT's `(w/2, h/2)` or the centre `((w-1)/2, (h-1)/2)`).
     pub cameras: Cameras,
 }
 

@@ -226,3 +226,30 @@ fn run_colmap_flags_shape_the_model() {
         assert_eq!(py["num_points3D"], 0, "{py}");
     }
 }
+
+/// A file that is not a chunk record given to `--input` is reported as the chunk input (not as
+/// the model configuration), naming the file.
+#[test]
+fn chunk_input_that_is_not_a_chunk_record_is_named_as_the_input() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // A valid safetensors without chunk tensors: the fixture's weights-free outputs file.
+    let not_chunks = small_dir().join("outputs.safetensors");
+    let out = ggpt_infer(&[
+        "chunk".as_ref(),
+        "--model-config".as_ref(),
+        small_dir().join("manifest.json").as_os_str(),
+        "--weights".as_ref(),
+        small_dir().join("weights.pth").as_os_str(),
+        "--input".as_ref(),
+        not_chunks.as_os_str(),
+        "--output".as_ref(),
+        dir.path().join("o.safetensors").as_os_str(),
+        "--device".as_ref(),
+        "ndarray".as_ref(),
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("chunk input") && err.contains("outputs.safetensors") && err.contains("ff_pts"), "{err}");
+    assert!(!err.contains("model config"), "{err}");
+    assert!(!dir.path().join("o.safetensors").exists());
+}

@@ -19,7 +19,7 @@ use crate::model::ChunkOutput;
 use crate::plan::ChunkInput;
 
 fn err(origin: &Path, message: String) -> ModelError {
-    ModelError::Config { path: origin.to_path_buf(), message }
+    ModelError::ChunkInput { path: origin.to_path_buf(), message }
 }
 
 /// Reads tensor `name` as f32 values with its shape (f32 only).

@@ -22,6 +22,25 @@ pub fn device_from_name(name: &str) -> Result<Device> {
     }
 }
 
+/// The `BURN_DEVICE` name of the backend that [`device_from_name`] picks for `name` (`flex`,
+/// `ndarray`, `wgpu`), `None` for an unknown name. Binaries pin Burn's default device to it,
+/// because Burn 0.22.1 creates some tensors on `Device::default()` whatever device the model is
+/// on (`ModuleOptimizer::load_record`: the optimizer state of a resumed run), and with the `wgpu`
+/// feature compiled in that default is a wgpu adapter: a CPU run would probe Vulkan.
+pub fn default_device_env_name(name: &str) -> Option<&'static str> {
+    match name {
+        #[cfg(feature = "ndarray")]
+        "ndarray" => Some("ndarray"),
+        #[cfg(feature = "flex")]
+        "flex" | "cpu" => Some("flex"),
+        #[cfg(all(feature = "ndarray", not(feature = "flex")))]
+        "cpu" => Some("ndarray"),
+        #[cfg(feature = "wgpu")]
+        "wgpu" => Some("wgpu"),
+        _ => None,
+    }
+}
+
 /// Sizes the process-wide rayon pool used by the CPU backends (flex: gemm, attention and
 /// element-wise kernels; ndarray: `multi-threads`) and by host planning: `threads = 0` keeps
 /// rayon's default (all cores, or `RAYON_NUM_THREADS`).

@@ -13,6 +13,15 @@ pub enum ModelError {
         /// What is wrong.
         message: String,
     },
+    /// A chunk-record file (network inputs, `formats.md` chunk records) could not be read or is
+    /// malformed.
+    #[error("chunk input {path}: {message}")]
+    ChunkInput {
+        /// Chunk-record file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
     /// A checkpoint could not be read.
     #[error("checkpoint {path}: {message}")]
     CheckpointRead {

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use ggpt_core::io::atomic::write_bytes_atomic;
 use ggpt_core::io::colmap::{
-    ColmapCamera, ColmapCameraModel, ColmapImage, ColmapModel, ColmapPoint2D, ColmapPoint3D, pixel_to_colmap, qvec_to_rotation, rotation_to_qvec, write_colmap,
+    ColmapCamera, ColmapCameraModel, ColmapImage, ColmapModel, ColmapPoint2D, ColmapPoint3D, pixel_to_colmap, qvec_to_rotation, write_colmap,
 };
 use ggpt_core::{Dims, SfmResult};
 use nalgebra::{Point3, Vector3};
@@ -138,41 +138,16 @@ fn source_rgb(images: &[f32], j: usize) -> [u8; 3] {
 ///
 /// Each image's `POINTS2D` are listed in ascending point id; observations are `x + 0.5` of the
 /// ff-pixel match (f64).
-pub fn colmap_model(out: &SfmOutput, images: &[f32], image_names: &[String], export: &ColmapExport) -> (ColmapModel, ColmapSummary) {
+pub fn colmap_model(out: &SfmOutput, images: &[f32], image_names: &[String], export: &ColmapExport) -> Result<(ColmapModel, ColmapSummary)> {
     let dims = out.correspondences.dims;
     let (n, h, w) = (dims.n, dims.h, dims.w);
     let hw = h * w;
     let nt = n * hw;
     let cams = &out.result.cameras;
     let shared = export.shared;
-    let camera = |id: u32, v: usize| {
-        let k = &cams.intrinsics[v];
-        let (cx, cy) = (k[(0, 2)] + 0.5, k[(1, 2)] + 0.5);
-        let (m, params) = match export.model {
-            CameraModel::Pinhole => (ColmapCameraModel::Pinhole, vec![k[(0, 0)], k[(1, 1)], cx, cy]),
-            CameraModel::SimplePinhole => (ColmapCameraModel::SimplePinhole, vec![(k[(0, 0)] + k[(1, 1)]) / 2.0, cx, cy]),
-        };
-        ColmapCamera { id, model: m, width: w as u64, height: h as u64, params }
-    };
-    let mut cm = ColmapModel::default();
-    if shared {
-        cm.cameras.push(camera(1, 0));
-    } else {
-        cm.cameras.extend((0..n).map(|v| camera(v as u32 + 1, v)));
-    }
-    for v in 0..n {
-        let e = &cams.cam_from_world[v];
-        let r = e.fixed_view::<3, 3>(0, 0).into_owned();
-        let name = image_names.get(v).cloned().unwrap_or_else(|| format!("{v:06}.jpg"));
-        cm.images.push(ColmapImage {
-            id: v as u32 + 1,
-            qvec: rotation_to_qvec(&r),
-            tvec: [e[(0, 3)], e[(1, 3)], e[(2, 3)]],
-            camera_id: if shared { 1 } else { v as u32 + 1 },
-            name,
-            points2d: Vec::new(),
-        });
-    }
+    let names: Vec<String> = (0..n).map(|v| image_names.get(v).cloned().unwrap_or_else(|| format!("{v:06}.jpg"))).collect();
+    let simple = export.model == CameraModel::SimplePinhole;
+    let mut cm = ColmapModel::from_cameras(cams, h, w, &names, simple, shared)?;
     let mut summary = ColmapSummary {
         points: export.points,
         ba_points_refined: out.ba_points_refined,
@@ -264,7 +239,7 @@ pub fn colmap_model(out: &SfmOutput, images: &[f32], image_names: &[String], exp
     if export.points == ColmapPoints::Dlt {
         summary.max_reprojection_error = f64::NAN;
     }
-    (cm, summary)
+    Ok((cm, summary))
 }
 
 /// Writes `dir/sfm_dlt_outputs.safetensors`, `dir/sparse/0/` (COLMAP binary, content chosen by
@@ -277,7 +252,7 @@ pub fn write_outputs(dir: &Path, out: &SfmOutput, images: &[f32], image_names: &
     write_bytes_atomic(&dir.join("sfm_dlt_outputs.safetensors"), &bytes)?;
     let sparse = dir.join("sparse").join("0");
     std::fs::create_dir_all(&sparse).map_err(|e| crate::SfmError::Io { path: sparse.clone(), source: e })?;
-    let (model, cs) = colmap_model(out, images, image_names, colmap);
+    let (model, cs) = colmap_model(out, images, image_names, colmap)?;
     write_colmap(&sparse, &model, false)?;
     let json_err = |e: serde_json::Error| crate::SfmError::Invalid(format!("{}: {e}", dir.join("summary.json").display()));
     let mut value = serde_json::to_value(&out.summary).map_err(json_err)?;

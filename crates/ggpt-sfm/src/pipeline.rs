@@ -248,7 +248,8 @@ pub fn run_sfm(ff: &FeedForward, images: &[f32], dims: Dims, matches: &[MatchSet
 /// Runs the SfM stage.
 ///
 /// * `ff`: feed-forward points `[N, h, w, 3]` (feed-forward frame) and cameras (`cam_from_world`,
-///   K in ff pixels with the principal point at the image centre);
+///   K in ff pixels, pixel-centre convention; the BA keeps its principal point, e.g. VGGT's
+///   `(w/2, h/2)`, and the output `K_sfm` has `((w-1)/2, (h-1)/2)`, `sfm.md` §7.1);
 /// * `images`: `[N, h, w, 3]` RGB in `[0, 1]` (Shi–Tomasi ranking when `rank` is `None`);
 /// * `sets`: correspondences of each matcher (config order, ties go to the first);
 /// * `rank`: optional `[N hw]` ranking score (e.g. SuperPoint);
@@ -419,24 +420,26 @@ pub fn run_sfm_correspondences(
 /// Builds the [`BaProblem`] of the selected tracks (`sfm.md` §7.1): initial cameras and
 /// intrinsics = feed-forward (feed-forward frame; focal + [`LEGACY_FOCAL_OFFSET`] with
 /// [`SfmConfig::legacy_focal_offset`]), observations in ff pixels (pixel-centre convention),
-/// principal point fixed at the image centre.
+/// principal point fixed at the feed-forward one (`sfm.md` §7.1: the official code hands
+/// `K_ff + 0.5` to COLMAP in f32, so the principal point takes the same f32 round trip as the
+/// observations).
 pub fn ba_problem(ff: &FeedForward, dims: Dims, tracks: &BaTracks, cfg: &SfmConfig) -> BaProblem {
+    let focal_offset = if cfg.legacy_focal_offset { LEGACY_FOCAL_OFFSET } else { 0.0 };
     BaProblem {
         cam_from_world: ff.cameras.cam_from_world.clone(),
-        intrinsics: if cfg.legacy_focal_offset {
-            ff.cameras
-                .intrinsics
-                .iter()
-                .map(|k| {
-                    let mut k = *k;
-                    k[(0, 0)] += LEGACY_FOCAL_OFFSET;
-                    k[(1, 1)] += LEGACY_FOCAL_OFFSET;
-                    k
-                })
-                .collect()
-        } else {
-            ff.cameras.intrinsics.clone()
-        },
+        intrinsics: ff
+            .cameras
+            .intrinsics
+            .iter()
+            .map(|k| {
+                let mut k = *k;
+                k[(0, 0)] += focal_offset;
+                k[(1, 1)] += focal_offset;
+                k[(0, 2)] = colmap_round_trip(k[(0, 2)]);
+                k[(1, 2)] = colmap_round_trip(k[(1, 2)]);
+                k
+            })
+            .collect(),
         points: tracks.points.clone(),
         observations: tracks
             .observations

@@ -287,7 +287,8 @@ fn compose(r: &Matrix3<f64>, t: &Vector3<f64>) -> Matrix3x4<f64> {
 
 /// Feed-forward cameras: GT cameras in the ff frame with rotation / translation noise (view 0
 /// stays exactly the identity, as VGGT's reference view) and focal lengths off by a shared bias
-/// plus per-view jitter; the principal point stays centred.
+/// plus per-view jitter; the principal point is the GT one here ([`crate::generate`] then sets the
+/// configured [`crate::PrincipalPoint`] convention).
 fn perturb_cameras(gt_ff: &Cameras, model: &FfErrorModel, seed: u64) -> Cameras {
     let mut rng: SynthRng = stream(seed, Tag::FfCameras, 0, 0);
     let sign = if chance(&mut rng, 0.5) { 1.0 } else { -1.0 };

@@ -64,6 +64,33 @@ pub struct SynthConfig {
     pub ff_error: FfErrorModel,
     /// Simulated matchers (one `MatchSet` each).
     pub matchers: Vec<MatcherModel>,
+    /// Principal point of the simulated feed-forward intrinsics `K_ff` (the GT cameras keep the
+    /// exact image centre).
+    #[serde(default)]
+    pub principal_point: PrincipalPoint,
+}
+
+/// Principal-point convention of the feed-forward intrinsics (`sfm.md` §1 inputs, §7.1: the BA
+/// keeps whatever principal point the feed-forward model gives).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PrincipalPoint {
+    /// VGGT's native output `(w/2, h/2)` (ff pixels, pixel-centre convention): half a pixel right
+    /// of / below the true image centre. The default, because that is what real users feed.
+    #[default]
+    Vggt,
+    /// The exact image centre `((w-1)/2, (h-1)/2)` (feed-forward models converted to OpenCV).
+    Centre,
+}
+
+impl PrincipalPoint {
+    /// `(cx, cy)` of an `h x w` image in ff pixels (pixel-centre convention).
+    pub fn of_image(self, h: usize, w: usize) -> (f64, f64) {
+        match self {
+            PrincipalPoint::Vggt => (w as f64 / 2.0, h as f64 / 2.0),
+            PrincipalPoint::Centre => ggpt_core::camera::centred_principal_point(h, w),
+        }
+    }
 }
 
 impl Default for SynthConfig {
@@ -78,6 +105,7 @@ impl Default for SynthConfig {
             ceiling: None,
             ff_error: FfErrorModel::default(),
             matchers: default_matchers(),
+            principal_point: PrincipalPoint::default(),
         }
     }
 }
@@ -171,7 +199,12 @@ pub fn generate_with_progress(cfg: &SynthConfig, progress: &(dyn Fn(Stage, u64) 
         SceneKind::Room => cfg.ff_error.clone(),
         SceneKind::Object => cfg.ff_error.scaled(OBJECT_FF_ERROR_FACTOR),
     };
-    let sim = feedforward::simulate_ff(&render, &gt_cams, &model, cfg.seed);
+    let mut sim = feedforward::simulate_ff(&render, &gt_cams, &model, cfg.seed);
+    let (ff_cx, ff_cy) = cfg.principal_point.of_image(dims.h, dims.w);
+    for k in &mut sim.ff.cameras.intrinsics {
+        k[(0, 2)] = ff_cx;
+        k[(1, 2)] = ff_cy;
+    }
     timings.push(("feedforward".to_string(), t1.elapsed().as_secs_f64()));
 
     let mut gt_points = Vec::with_capacity(3 * dims.pixels());

@@ -50,12 +50,16 @@ fn scene_validates_and_has_expected_shapes() {
         assert!(s.matches.iter().all(|m| m.pred_cycle_error.is_none()));
         let ff = s.ff.as_ref().expect("ff");
         assert!(ff.conf.iter().all(|c| *c >= 1.0));
-        // View 0 of the ff cameras is exactly the identity; principal point centred.
+        // View 0 of the ff cameras is exactly the identity; the GT principal point is the centre,
+        // the ff one VGGT's (w/2, h/2) by default.
         let m0 = ff.cameras.cam_from_world[0];
         assert_eq!(m0.fixed_view::<3, 3>(0, 0).into_owned(), nalgebra::Matrix3::identity());
         assert_eq!(m0.column(3).into_owned(), Vector3::zeros());
-        for k in ff.cameras.intrinsics.iter().chain(&s.gt.as_ref().expect("gt").cameras.intrinsics) {
+        for k in &s.gt.as_ref().expect("gt").cameras.intrinsics {
             assert_eq!((k[(0, 2)], k[(1, 2)]), (27.5, 20.5));
+        }
+        for k in &ff.cameras.intrinsics {
+            assert_eq!((k[(0, 2)], k[(1, 2)]), (28.0, 21.0));
         }
         assert!(s.images.iter().all(|v| (0.0..=1.0).contains(v)));
     }
@@ -301,4 +305,20 @@ fn scene_directory_round_trip() {
     ggpt_core::io::scene_dir::write_scene(&path, &out.scene).expect("write_scene");
     let back = ggpt_core::io::scene_dir::read_scene(&path).expect("read_scene");
     assert_eq!(back, out.scene);
+}
+
+#[test]
+fn principal_point_convention_sets_only_the_ff_intrinsics() {
+    let vggt = gen_ok(&SynthConfig { matches: false, ..small(SceneKind::Room, 3) });
+    let centre = gen_ok(&SynthConfig { matches: false, principal_point: ggpt_synth::PrincipalPoint::Centre, ..small(SceneKind::Room, 3) });
+    let (fv, fc) = (vggt.scene.ff.as_ref().expect("ff"), centre.scene.ff.as_ref().expect("ff"));
+    for (kv, kc) in fv.cameras.intrinsics.iter().zip(&fc.cameras.intrinsics) {
+        assert_eq!((kv[(0, 2)], kv[(1, 2)]), (28.0, 21.0));
+        assert_eq!((kc[(0, 2)], kc[(1, 2)]), (27.5, 20.5));
+        assert_eq!((kv[(0, 0)], kv[(1, 1)]), (kc[(0, 0)], kc[(1, 1)]));
+    }
+    // Everything else is identical.
+    assert_eq!(fv.points, fc.points);
+    assert_eq!(fv.cameras.cam_from_world, fc.cameras.cam_from_world);
+    assert_eq!(vggt.scene.gt, centre.scene.gt);
 }

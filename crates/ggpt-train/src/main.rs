@@ -214,8 +214,9 @@ struct TrainArgs {
     /// for CUDA devices (see docs/training.md); other values than 1 are rejected on CPU / wgpu.
     #[arg(long, default_value_t = 1)]
     devices: usize,
-    /// Resume from the newest checkpoint in `--out` (or from this checkpoint directory).
-    #[arg(long, num_args = 0..=1, default_missing_value = "")]
+    /// Resume: a bare `--resume` (or `--resume latest`) takes the newest complete checkpoint in
+    /// `--out`; `--resume DIR` that checkpoint directory.
+    #[arg(long, num_args = 0..=1, default_missing_value = RESUME_LATEST, value_name = "DIR|latest")]
     resume: Option<PathBuf>,
     /// Initialise from an official checkpoint (.pth / .safetensors / .bpk) for fine-tuning.
     #[arg(long)]
@@ -418,6 +419,9 @@ fn install_ctrl_c(flag: &Arc<AtomicBool>) {
     });
 }
 
+/// Value of a bare `--resume`: the newest complete checkpoint in `--out`.
+const RESUME_LATEST: &str = "latest";
+
 fn train(a: &TrainArgs) -> Result<()> {
     if a.devices != 1 {
         bail!(
@@ -432,7 +436,7 @@ fn train(a: &TrainArgs) -> Result<()> {
     let ad = device.clone().autodiff();
     let resume_dir = match &a.resume {
         None => None,
-        Some(p) if p.as_os_str().is_empty() => {
+        Some(p) if p.as_os_str() == RESUME_LATEST => {
             let list = trainer::list_checkpoints(&a.out)?;
             Some(list.last().map(|(_, d)| d.clone()).with_context(|| format!("--resume: no checkpoint in {}", a.out.display()))?)
         }
@@ -784,6 +788,19 @@ fn default_run(out: &Path) -> Result<()> {
     })
 }
 
+/// Pins Burn's default device (`BURN_DEVICE`, unless the user set it) to the backend of the
+/// requested device, so that a CPU run touches no GPU API: Burn 0.22.1 restores the optimizer
+/// state of `--resume` on `Device::default()`, which is a wgpu adapter when wgpu is compiled in
+/// (a Vulkan probe, and XDG_RUNTIME_DIR errors on headless machines).
+fn pin_default_device(device: &str) {
+    if std::env::var_os("BURN_DEVICE").is_none()
+        && let Some(name) = ggpt_model::device::default_device_env_name(device)
+    {
+        // SAFETY: called at the start of `main`, before any other thread exists.
+        unsafe { std::env::set_var("BURN_DEVICE", name) };
+    }
+}
+
 fn main() -> Result<()> {
     ggpt_model::device::tune_allocator();
     tracing_subscriber::fmt()
@@ -791,6 +808,11 @@ fn main() -> Result<()> {
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")))
         .init();
     let cli = Cli::parse();
+    pin_default_device(match &cli.command {
+        Some(Command::Train(a)) => &a.device,
+        Some(Command::Eval(a)) => &a.device,
+        _ => "cpu",
+    });
     match &cli.command {
         None => default_run(&cli.out),
         Some(Command::Prepare(a)) => prepare(a),

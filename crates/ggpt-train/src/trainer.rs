@@ -287,7 +287,7 @@ pub fn save_checkpoint(out: &Path, model: &Ggpt, optim: &ModuleOptimizer, state:
     let root = out.join("checkpoints");
     std::fs::create_dir_all(&root).map_err(io_err(&root))?;
     let final_dir = checkpoint_dir(out, state.step);
-    let tmp = root.join(format!(".tmp-step-{:08}-{}", state.step, std::process::id()));
+    let tmp = root.join(format!("{CHECKPOINT_TMP_PREFIX}{:08}-{}", state.step, std::process::id()));
     if tmp.exists() {
         std::fs::remove_dir_all(&tmp).map_err(io_err(&tmp))?;
     }
@@ -384,9 +384,82 @@ fn append_metrics(path: &Path, line: &MetricsLine) -> Result<()> {
     writeln!(f, "{text}").map_err(io_err(path))
 }
 
-/// Runs the training loop from `ctx.start_step` to `o.steps`.
+/// Prefix of the temporary directory a checkpoint is written into before its rename
+/// (`.tmp-step-<step>-<pid>`).
+const CHECKPOINT_TMP_PREFIX: &str = ".tmp-step-";
+
+/// Whether process `pid` is alive (`kill(pid, 0)` succeeds or fails for lack of permission).
+fn process_alive(pid: u32) -> bool {
+    let Ok(pid) = libc::pid_t::try_from(pid) else { return false };
+    if pid <= 0 {
+        return false;
+    }
+    // SAFETY: signal 0 sends nothing; it only checks that the process exists.
+    let r = unsafe { libc::kill(pid, 0) };
+    r == 0 || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM)
+}
+
+/// Removes the checkpoint temporary directories `checkpoints/.tmp-step-<step>-<pid>` left by
+/// processes that died while writing a checkpoint (kill -9, power loss). A directory of a live
+/// process other than this one (another run writing into the same folder) is left alone.
+/// Returns the removed directories.
+pub fn remove_stale_checkpoint_temps(out: &Path) -> Result<Vec<PathBuf>> {
+    let root = out.join("checkpoints");
+    let mut removed = Vec::new();
+    if !root.is_dir() {
+        return Ok(removed);
+    }
+    let me = std::process::id();
+    for e in std::fs::read_dir(&root).map_err(io_err(&root))? {
+        let e = e.map_err(io_err(&root))?;
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(rest) = name.strip_prefix(CHECKPOINT_TMP_PREFIX) else { continue };
+        let Some(pid) = rest.rsplit('-').next().and_then(|p| p.parse::<u32>().ok()) else { continue };
+        if pid != me && process_alive(pid) {
+            continue;
+        }
+        let path = e.path();
+        std::fs::remove_dir_all(&path).map_err(io_err(&path))?;
+        tracing::info!("removed the stale checkpoint temporary {} (process {pid} is gone)", path.display());
+        removed.push(path);
+    }
+    Ok(removed)
+}
+
+/// Makes `metrics.jsonl` consistent with a run that continues after `step`: drops every line
+/// past `step` (steps re-run after a crash would otherwise appear twice) and any torn line a
+/// crash left, atomically (temporary file + rename). Returns the number of lines dropped.
+pub fn truncate_metrics(path: &Path, step: u64) -> Result<usize> {
+    let text = match std::fs::read_to_string(path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
+        Err(e) => return Err(io_err(path)(e)),
+    };
+    let mut kept = String::with_capacity(text.len());
+    let mut dropped = 0;
+    for line in text.lines().filter(|l| !l.trim().is_empty()) {
+        match serde_json::from_str::<MetricsLine>(line) {
+            Ok(m) if m.step <= step => {
+                kept.push_str(line);
+                kept.push('\n');
+            }
+            _ => dropped += 1,
+        }
+    }
+    if dropped > 0 {
+        ggpt_core::io::atomic::write_bytes_atomic(path, kept.as_bytes())?;
+        tracing::info!("{}: dropped {dropped} line(s) past step {step}", path.display());
+    }
+    Ok(dropped)
+}
+
+/// Runs the training loop from `ctx.start_step` to `o.steps`. Before the first step it removes
+/// the checkpoint temporaries of dead processes and the `metrics.jsonl` lines past
+/// `ctx.start_step` ([`remove_stale_checkpoint_temps`], [`truncate_metrics`]).
 pub fn run(o: &TrainOptions, ctx: RunContext<'_>) -> Result<RunResult> {
     std::fs::create_dir_all(ctx.out).map_err(io_err(ctx.out))?;
+    remove_stale_checkpoint_temps(ctx.out)?;
+    truncate_metrics(&ctx.out.join("metrics.jsonl"), ctx.start_step)?;
     let train = ctx.data.load_split(Split::Train)?;
     if train.is_empty() {
         return Err(TrainError::Invalid(format!("{}: no training chunk", ctx.data.dir.display())));
@@ -664,5 +737,65 @@ mod tests {
         assert!(learning_rate(&o, 10).abs() < 1e-12);
         let c = TrainOptions { lr_schedule: LrSchedule::Constant, ..o };
         assert_eq!(learning_rate(&c, 7), 1.0);
+    }
+
+    fn metrics_line(step: u64, kind: &str) -> String {
+        let l = MetricsLine {
+            step,
+            kind: kind.into(),
+            loss: 1.0 / step as f64,
+            loss_conf: None,
+            loss_id: None,
+            lr: 1e-4,
+            grad_norm: 1.0,
+            chunks_per_s: 1.0,
+            tokens_per_s: 1.0,
+            elapsed_s: 0.0,
+            val: None,
+        };
+        serde_json::to_string(&l).unwrap()
+    }
+
+    /// Lines past the resume step and a torn last line are dropped; the rest is kept verbatim.
+    #[test]
+    fn truncate_metrics_drops_lines_past_the_step_and_torn_lines() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("metrics.jsonl");
+        assert_eq!(truncate_metrics(&path, 3).unwrap(), 0, "a missing file is fine");
+        let kept: Vec<String> = vec![metrics_line(1, "train"), metrics_line(2, "train"), metrics_line(2, "val"), metrics_line(3, "train")];
+        let mut text = kept.join("\n") + "\n";
+        text += &(metrics_line(4, "train") + "\n" + &metrics_line(5, "train") + "\n");
+        text += &metrics_line(6, "train")[..20]; // torn by a crash
+        std::fs::write(&path, &text).unwrap();
+        assert_eq!(truncate_metrics(&path, 3).unwrap(), 3);
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), kept.join("\n") + "\n");
+        assert_eq!(truncate_metrics(&path, 3).unwrap(), 0, "idempotent");
+        assert_eq!(truncate_metrics(&path, 0).unwrap(), 4, "a fresh run starts a new file");
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "");
+    }
+
+    /// Temporaries of dead processes go, a live process's stays, other entries are untouched.
+    #[test]
+    fn stale_checkpoint_temporaries_of_dead_processes_are_removed() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("checkpoints");
+        let mut gone = std::process::Command::new("true").spawn().unwrap();
+        let dead = gone.id();
+        gone.wait().unwrap();
+        // A live process that is not this one: a sleeping child.
+        let mut live_child = std::process::Command::new("sleep").arg("30").spawn().unwrap();
+        let stale = root.join(format!(".tmp-step-00000007-{dead}"));
+        let mine = root.join(format!(".tmp-step-00000008-{}", std::process::id()));
+        let live = root.join(format!(".tmp-step-00000009-{}", live_child.id()));
+        let other = root.join("step-00000006");
+        for d in [&stale, &mine, &live, &other] {
+            std::fs::create_dir_all(d).unwrap();
+        }
+        let removed = remove_stale_checkpoint_temps(dir.path()).unwrap();
+        live_child.kill().unwrap();
+        live_child.wait().unwrap();
+        assert_eq!(removed.len(), 2, "{removed:?}");
+        assert!(!stale.exists() && !mine.exists(), "this process has not started writing: its own name is stale too");
+        assert!(live.exists() && other.exists());
     }
 }

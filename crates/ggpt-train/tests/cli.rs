@@ -187,3 +187,78 @@ fn help_documents_the_flags() {
         assert!(text.contains(flag), "{flag} missing from train --help");
     }
 }
+
+fn train_losses(run: &Path) -> Vec<(u64, f64)> {
+    std::fs::read_to_string(run.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str::<MetricsLine>(l).unwrap())
+        .filter(|l| l.kind == "train")
+        .map(|l| (l.step, l.loss))
+        .collect()
+}
+
+/// A real child process killed with SIGKILL mid-run, then the documented
+/// `train --data D --out O --resume --steps N` (bare `--resume` before another flag): the
+/// resumed run reproduces the uninterrupted run's losses exactly, `metrics.jsonl` lists every
+/// step once, and the checkpoint temporaries of dead processes are removed (a live process's is
+/// kept).
+#[test]
+fn kill_9_then_bare_resume_reproduces_the_uninterrupted_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let set_dir = dir.path().join("set");
+    run_ok(
+        bin()
+            .args(["prepare", "--out"])
+            .arg(&set_dir)
+            .args(["--synthetic-train", "2", "--synthetic-val", "1", "--views", "3", "--width", "98", "--height", "70"])
+            .args(["--chunks-per-scene", "2", "--max-pixels", "1500", "--min-dlt", "20", "--min-pixels", "200"]),
+    );
+    let common = ["--config", "tiny", "--batch-size", "2", "--save-every", "2", "--val-every", "0", "--lr-schedule", "constant", "--device", "cpu"];
+    // The run to kill: many steps, killed once it is past its second checkpoint.
+    let killed = dir.path().join("killed");
+    let mut child = bin().args(["train", "--data"]).arg(&set_dir).arg("--out").arg(&killed).args(common).args(["--steps", "1000"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    loop {
+        let newest = list_checkpoints(&killed).unwrap().last().map(|(s, _)| *s).unwrap_or(0);
+        if newest >= 4 {
+            break;
+        }
+        assert!(child.try_wait().unwrap().is_none(), "the training child exited early");
+        assert!(t0.elapsed().as_secs() < 600, "no checkpoint at step 4 after 10 minutes");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.kill().unwrap(); // SIGKILL
+    child.wait().unwrap();
+    let ckpt = list_checkpoints(&killed).unwrap().last().map(|(s, _)| *s).unwrap();
+    let steps = ckpt + 3;
+    // Leftovers: a temporary of a dead process (a finished child's pid), one of a live one.
+    let mut gone = Command::new("true").spawn().unwrap();
+    let dead_pid = gone.id();
+    gone.wait().unwrap();
+    let stale = killed.join(format!("checkpoints/.tmp-step-00000099-{dead_pid}"));
+    let live = killed.join(format!("checkpoints/.tmp-step-00000098-{}", std::process::id()));
+    for d in [&stale, &live] {
+        std::fs::create_dir_all(d).unwrap();
+        std::fs::write(d.join("model.bpk"), b"partial").unwrap();
+    }
+    let steps_s = steps.to_string();
+    // CPU-only runs touch no GPU API: no Vulkan/wayland probe message, even without XDG_RUNTIME_DIR.
+    let out = run_ok(bin().env_remove("XDG_RUNTIME_DIR").args(["train", "--data"]).arg(&set_dir).arg("--out").arg(&killed).args(common).args(["--resume", "--steps", &steps_s]));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("XDG_RUNTIME_DIR"), "a CPU run probed a GPU device: {err}");
+    assert!(!stale.exists(), "the dead process's checkpoint temporary was not removed");
+    assert!(live.exists(), "a live process's checkpoint temporary must be left alone");
+    let reference = dir.path().join("reference");
+    run_ok(bin().args(["train", "--data"]).arg(&set_dir).arg("--out").arg(&reference).args(common).args(["--steps", &steps_s]));
+    let (a, b) = (train_losses(&reference), train_losses(&killed));
+    assert_eq!(a.iter().map(|(s, _)| *s).collect::<Vec<_>>(), (1..=steps).collect::<Vec<_>>());
+    assert_eq!(b, a, "resumed after kill -9 (checkpoint {ckpt}) vs uninterrupted");
+    // `--resume` at the end of the line is accepted too (nothing left to do: the run is complete).
+    run_ok(bin().args(["train", "--data"]).arg(&set_dir).arg("--out").arg(&killed).args(common).args(["--steps", &steps_s, "--resume"]));
+    assert_eq!(train_losses(&killed), a);
+}

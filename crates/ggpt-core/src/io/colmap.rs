@@ -193,11 +193,18 @@ impl ColmapCamera {
     }
 }
 
+/// The `SIMPLE_PINHOLE` focal of a pinhole `K`: `(fx + fy) / 2` (`sfm.md` §7.1, the official
+/// rule when the BA initialises a SIMPLE_PINHOLE camera).
+pub fn simple_pinhole_focal(k: &Matrix3<f64>) -> f64 {
+    0.5 * (k[(0, 0)] + k[(1, 1)])
+}
+
 impl ColmapModel {
     /// Builds cameras and images from pipeline cameras (pixel-centre convention, `h x w`
-    /// images): one `PINHOLE` (or `SIMPLE_PINHOLE` when `simple`, using `fx`) camera per view, or
-    /// one shared camera (view 0's K) when `shared`; images named `names[i]`, ids `1..N`.
-    /// No 3D points.
+    /// images): one `PINHOLE` (or `SIMPLE_PINHOLE` when `simple`, with the official focal rule
+    /// `f = (fx + fy) / 2` of `sfm.md` §7.1) camera per view, or one shared camera (view 0's K)
+    /// when `shared`; images named `names[i]`, ids `1..N`. No 3D points. The one writer of COLMAP
+    /// cameras and images in the workspace (`ggpt-sfm` and `ggpt-scene` exports use it).
     pub fn from_cameras(cams: &Cameras, h: usize, w: usize, names: &[String], simple: bool, shared: bool) -> Result<Self> {
         if names.len() != cams.len() {
             return Err(CoreError::Invalid(format!("{} image names for {} cameras", names.len(), cams.len())));
@@ -208,7 +215,7 @@ impl ColmapModel {
             if !shared || i == 0 {
                 let (cx, cy) = (k[(0, 2)] + 0.5, k[(1, 2)] + 0.5);
                 let (m, params) = if simple {
-                    (ColmapCameraModel::SimplePinhole, vec![k[(0, 0)], cx, cy])
+                    (ColmapCameraModel::SimplePinhole, vec![simple_pinhole_focal(k), cx, cy])
                 } else {
                     (ColmapCameraModel::Pinhole, vec![k[(0, 0)], k[(1, 1)], cx, cy])
                 };

@@ -26,7 +26,8 @@ use crate::io::npy::{NpyArray, NpyData, read_npz};
 use crate::io::official::{dir_name, read_ff_outputs_bin, read_gt_bin, read_sfm_dlt_outputs_bin};
 use crate::{Cameras, CoreError, Dims, FeedForward, Result, Scene, SfmResult};
 
-/// Allowed distance of the ff principal point from the image centre (`formats.md` §5.2), pixels.
+/// Allowed distance of the ff principal point from one of the accepted conventions
+/// (`formats.md` §5.2), pixels.
 pub const PRINCIPAL_POINT_TOL: f64 = 1e-3;
 /// Accepted image file extensions (lower case).
 const IMAGE_EXTS: [&str; 3] = ["jpg", "jpeg", "png"];
@@ -85,10 +86,18 @@ fn read_ff_part(dir: &Path) -> Result<(FeedForward, Option<Vec<f32>>, Dims)> {
     let points = z.f32_exact("points", &[n, h, w, 3])?;
     let conf = z.f32_exact("conf", &[n, h, w])?;
     let cameras = Cameras { cam_from_world: z.extrinsics("cam_from_world", n)?, intrinsics: z.intrinsics("K", n)? };
+    // Accepted: the image centre ((w-1)/2, (h-1)/2) and VGGT's native (w/2, h/2) [project: the
+    // spec's §5.2 lists only the centre, but the BA keeps the given principal point, sfm.md §7.1,
+    // and VGGT's output is what real users feed].
+    let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    let (vx, vy) = (w as f64 / 2.0, h as f64 / 2.0);
     for (i, k) in cameras.intrinsics.iter().enumerate() {
-        let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
-        if (k[(0, 2)] - cx).abs() > PRINCIPAL_POINT_TOL || (k[(1, 2)] - cy).abs() > PRINCIPAL_POINT_TOL {
-            return Err(z.err("K", format!("view {i}: principal point ({}, {}) is not the image centre ({cx}, {cy})", k[(0, 2)], k[(1, 2)])));
+        let near = |x: f64, y: f64| (k[(0, 2)] - x).abs() <= PRINCIPAL_POINT_TOL && (k[(1, 2)] - y).abs() <= PRINCIPAL_POINT_TOL;
+        if !near(cx, cy) && !near(vx, vy) {
+            return Err(z.err(
+                "K",
+                format!("view {i}: principal point ({}, {}) is neither the image centre ({cx}, {cy}) nor VGGT's ({vx}, {vy})", k[(0, 2)], k[(1, 2)]),
+            ));
         }
     }
     let images = if z.has("images") { Some(z.images("images", dims)?) } else { None };

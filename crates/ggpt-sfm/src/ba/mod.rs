@@ -6,7 +6,8 @@
 //! * unknowns: every view's pose `cam_from_world = [R | t]` (updated on SE(3) as
 //!   `R <- exp([δω]×) R`, `t <- t + δt`), every point, and the focal length(s) (one camera shared by
 //!   all views or one per view; `SIMPLE_PINHOLE`: one focal, `PINHOLE`: `fx, fy`); the principal
-//!   point is held fixed at `((w-1)/2, (h-1)/2)` (pixel-centre convention);
+//!   point is held fixed at the initial intrinsics' (view 0's for a shared camera), as the official
+//!   BA keeps the feed-forward principal point (`sfm.md` §7.1);
 //! * residual `r = π(K (R X + t)) - u` in pixels, cost `½ Σ ρ(‖r‖²)` (Ceres convention) with the
 //!   trivial or the Cauchy loss `ρ(s) = a² log(1 + s/a²)`, minimised by IRLS re-weighting (which is
 //!   what Ceres does for the Cauchy loss: its second derivative is negative, so Ceres' Triggs
@@ -94,8 +95,10 @@ pub struct BaProblem {
     /// non-orthonormal f32 matrix: it is re-orthonormalised by a unit-quaternion round trip
     /// (as COLMAP stores it).
     pub cam_from_world: Vec<Matrix3x4<f64>>,
-    /// Initial intrinsics per view (ff pixels, pixel-centre convention); only `fx = K[0,0]` and
-    /// `fy = K[1,1]` are used (the principal point is fixed from [`BaProblem::image_size`]).
+    /// Initial intrinsics per view (ff pixels, pixel-centre convention): `fx = K[0,0]`,
+    /// `fy = K[1,1]` initialise the focal length(s); the principal point `(K[0,2], K[1,2])` is held
+    /// fixed at its initial value (view 0's for a shared camera; `sfm.md` §7.1: the official BA
+    /// keeps the feed-forward principal point, e.g. VGGT's `(w/2, h/2)`, and does not re-centre it).
     pub intrinsics: Vec<Matrix3<f64>>,
     /// Initial points (world frame).
     pub points: Vec<Point3<f64>>,
@@ -109,7 +112,8 @@ pub struct BaProblem {
     pub refine_focal: bool,
     /// Robust loss.
     pub loss: LossFunction,
-    /// Image size `(h, w)` in ff pixels: principal point fixed at `((w-1)/2, (h-1)/2)`.
+    /// Image size `(h, w)` in ff pixels: the output intrinsics' principal point is
+    /// `((w-1)/2, (h-1)/2)` whatever the BA used (`sfm.md` §7.1 output).
     pub image_size: (usize, usize),
 }
 

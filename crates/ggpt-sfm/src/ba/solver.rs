@@ -41,8 +41,9 @@ struct Layout {
     pt_start: Vec<usize>,
     obs_view: Vec<usize>,
     obs_xy: Vec<Vector2<f64>>,
-    cx: f64,
-    cy: f64,
+    /// Fixed principal point `(cx, cy)` of each camera (ff pixels, pixel-centre convention): the
+    /// initial intrinsics' (view 0's for a shared camera), `sfm.md` §7.1.
+    principal_point: Vec<[f64; 2]>,
     loss: LossFunction,
     /// Reduced camera system size: `6 n_views + n_cams nf`.
     nc: usize,
@@ -106,9 +107,15 @@ pub(super) fn solve(problem: &BaProblem, options: &BaOptions) -> Result<BaReport
     if let Some(v) = problem.cam_from_world.iter().position(|m| m.iter().any(|x| !x.is_finite())) {
         return Ok(fail(format!("camera {v} is not finite"), 0.0, 0));
     }
+    if problem.intrinsics.len() != n {
+        return Ok(fail(format!("{} intrinsics for {n} views", problem.intrinsics.len()), 0.0, 0));
+    }
     let focal_ok = |k: &Matrix3<f64>| k[(0, 0)].is_finite() && k[(1, 1)].is_finite() && k[(0, 0)] > 0.0 && k[(1, 1)] > 0.0;
     if let Some(v) = problem.intrinsics.iter().position(|k| !focal_ok(k)) {
         return Ok(fail(format!("intrinsics of view {v} have a non-finite or non-positive focal length"), 0.0, 0));
+    }
+    if let Some(v) = problem.intrinsics.iter().position(|k| !(k[(0, 2)].is_finite() && k[(1, 2)].is_finite())) {
+        return Ok(fail(format!("intrinsics of view {v} have a non-finite principal point"), 0.0, 0));
     }
     let state = initial_state(problem);
     let layout = build_layout(problem, options, &state);
@@ -148,7 +155,6 @@ fn initial_state(problem: &BaProblem) -> State {
 
 fn build_layout(problem: &BaProblem, options: &BaOptions, state: &State) -> Layout {
     let n = problem.cam_from_world.len();
-    let (h, w) = problem.image_size;
     let point_ok = |p: &Point3<f64>| p.iter().all(|c| c.is_finite() && c.abs() < MAX_POINT_COORD);
     // Active observations: usable point, finite observation, point in front of the camera.
     let mut per_point: Vec<Vec<(usize, Vector2<f64>)>> = vec![Vec::new(); problem.points.len()];
@@ -215,8 +221,7 @@ fn build_layout(problem: &BaProblem, options: &BaOptions, state: &State) -> Layo
         pt_start,
         obs_view,
         obs_xy,
-        cx: (w as f64 - 1.0) / 2.0,
-        cy: (h as f64 - 1.0) / 2.0,
+        principal_point: problem.intrinsics.iter().take(n_cams).map(|k| [k[(0, 2)], k[(1, 2)]]).collect(),
         loss: problem.loss,
         nc: 6 * n + n_cams * nf,
         fixed,
@@ -267,10 +272,11 @@ fn residual_jac<const D: usize>(
         return None;
     }
     let [fx, fy] = s.focal[l.cam_of_view[v]];
+    let [cx, cy] = l.principal_point[l.cam_of_view[v]];
     let iz = 1.0 / p.z;
     let xn = p.x * iz;
     let yn = p.y * iz;
-    let r = Vector2::new(fx * xn + l.cx - xy.x, fy * yn + l.cy - xy.y);
+    let r = Vector2::new(fx * xn + cx - xy.x, fy * yn + cy - xy.y);
     // dr/dp
     let a = [[fx * iz, 0.0, -fx * xn * iz], [0.0, fy * iz, -fy * yn * iz]];
     let mut jc = [[0.0; D]; 2];
@@ -316,8 +322,9 @@ fn evaluate(l: &Layout, s: &State) -> Option<f64> {
                     return None;
                 }
                 let [fx, fy] = s.focal[l.cam_of_view[v]];
-                let rx = fx * p.x / p.z + l.cx - l.obs_xy[o].x;
-                let ry = fy * p.y / p.z + l.cy - l.obs_xy[o].y;
+                let [cx, cy] = l.principal_point[l.cam_of_view[v]];
+                let rx = fx * p.x / p.z + cx - l.obs_xy[o].x;
+                let ry = fy * p.y / p.z + cy - l.obs_xy[o].y;
                 cost += 0.5 * l.loss.evaluate(rx * rx + ry * ry).0;
             }
         }

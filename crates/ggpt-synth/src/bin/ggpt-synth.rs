@@ -10,7 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use tracing::info;
 
 use ggpt_synth::stats::{match_stats, point_accuracy};
-use ggpt_synth::{SceneKind, Stage, SynthConfig, generate_with_progress};
+use ggpt_synth::{PrincipalPoint, SceneKind, Stage, SynthConfig, generate_with_progress};
 
 /// Generate a synthetic multi-view scene with exact ground truth.
 #[derive(Debug, Parser)]
@@ -34,6 +34,11 @@ struct Args {
     /// Room ceiling: `yes`, `no` or `random`.
     #[arg(long, value_enum, default_value_t = Ceiling::Random)]
     ceiling: Ceiling,
+    /// Principal point of the feed-forward intrinsics: `vggt` = `(w/2, h/2)` (VGGT's native
+    /// output, what real users feed) or `centre` = `((w-1)/2, (h-1)/2)`. The GT cameras keep
+    /// the exact centre.
+    #[arg(long, value_enum, default_value_t = PrincipalPointArg::Vggt)]
+    principal_point: PrincipalPointArg,
     /// Output scene directory (project layout, `ggpt_core::io::scene_dir`).
     #[arg(long)]
     out: PathBuf,
@@ -56,6 +61,12 @@ struct Args {
 enum Kind {
     Room,
     Object,
+}
+
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum PrincipalPointArg {
+    Vggt,
+    Centre,
 }
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -85,6 +96,10 @@ fn main() -> Result<()> {
             Ceiling::Yes => Some(true),
             Ceiling::No => Some(false),
             Ceiling::Random => None,
+        },
+        principal_point: match args.principal_point {
+            PrincipalPointArg::Vggt => PrincipalPoint::Vggt,
+            PrincipalPointArg::Centre => PrincipalPoint::Centre,
         },
         ..SynthConfig::default()
     };
