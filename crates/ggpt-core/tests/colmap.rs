@@ -163,3 +163,22 @@ fn prefers_binary_and_rejects_bad_files() {
     m2.cameras[0] = ColmapCamera { id: 1, model: ColmapCameraModel::Opencv, width: 1, height: 1, params: vec![0.0; 8] };
     assert!(write_colmap(t.path(), &m2, false).is_err());
 }
+
+/// SIMPLE_PINHOLE uses the official focal rule `f = (fx + fy) / 2` (`sfm.md` §7.1), written and
+/// read back through the one writer (`ggpt-sfm`'s `sparse/0` uses it too).
+#[test]
+fn simple_pinhole_focal_is_the_mean_of_fx_and_fy() {
+    let c = cams(); // fx = 400, fy = 401
+    let m = ColmapModel::from_cameras(&c, 392, 518, &["a".into(), "b".into()], true, false).unwrap();
+    assert_eq!(m.cameras.len(), 2);
+    for cam in &m.cameras {
+        assert_eq!(cam.model, ColmapCameraModel::SimplePinhole);
+        assert_eq!(cam.params, vec![400.5, 259.0, 196.0]);
+    }
+    assert_eq!(ggpt_core::io::colmap::simple_pinhole_focal(&c.intrinsics[0]), 400.5);
+    let dir = tempfile::tempdir().unwrap();
+    write_colmap(dir.path(), &m, true).unwrap();
+    let back = read_colmap(dir.path()).unwrap();
+    let k = back.cameras[0].to_pinhole().unwrap();
+    assert_eq!((k[(0, 0)], k[(1, 1)], k[(0, 2)], k[(1, 2)]), (400.5, 400.5, 258.5, 195.5));
+}

@@ -21,6 +21,21 @@ fn run_ok(cmd: &mut Command) -> Output {
     out
 }
 
+/// `ggpt-train prepare` of a small synthetic chunk set (`train` training scenes, one val scene,
+/// 3 views at 98x70) into `dir/set`.
+fn prepare_small_set(dir: &Path, train: usize) -> PathBuf {
+    let set_dir = dir.join("set");
+    let train = train.to_string();
+    run_ok(
+        bin()
+            .args(["prepare", "--out"])
+            .arg(&set_dir)
+            .args(["--synthetic-train", &train, "--synthetic-val", "1", "--views", "3", "--width", "98", "--height", "70"])
+            .args(["--chunks-per-scene", "2", "--max-pixels", "1500", "--min-dlt", "20", "--min-pixels", "200"]),
+    );
+    set_dir
+}
+
 fn official_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/official_format/synth_room_s0")
 }
@@ -151,14 +166,7 @@ fn prepare_from_an_official_directory() {
 #[test]
 fn truncated_shard_stops_training_naming_the_shard() {
     let dir = tempfile::tempdir().unwrap();
-    let set_dir = dir.path().join("set");
-    run_ok(
-        bin()
-            .args(["prepare", "--out"])
-            .arg(&set_dir)
-            .args(["--synthetic-train", "1", "--synthetic-val", "1", "--views", "3", "--width", "98", "--height", "70"])
-            .args(["--chunks-per-scene", "2", "--max-pixels", "1500", "--min-dlt", "20", "--min-pixels", "200"]),
-    );
+    let set_dir = prepare_small_set(dir.path(), 1);
     let set = ChunkSet::open(&set_dir).unwrap();
     let shard = set.manifest.shards.iter().find(|s| s.split == Split::Train).unwrap();
     let path = set_dir.join(&shard.file);
@@ -206,14 +214,7 @@ fn train_losses(run: &Path) -> Vec<(u64, f64)> {
 #[test]
 fn kill_9_then_bare_resume_reproduces_the_uninterrupted_run() {
     let dir = tempfile::tempdir().unwrap();
-    let set_dir = dir.path().join("set");
-    run_ok(
-        bin()
-            .args(["prepare", "--out"])
-            .arg(&set_dir)
-            .args(["--synthetic-train", "2", "--synthetic-val", "1", "--views", "3", "--width", "98", "--height", "70"])
-            .args(["--chunks-per-scene", "2", "--max-pixels", "1500", "--min-dlt", "20", "--min-pixels", "200"]),
-    );
+    let set_dir = prepare_small_set(dir.path(), 2);
     let common = ["--config", "tiny", "--batch-size", "2", "--save-every", "2", "--val-every", "0", "--lr-schedule", "constant", "--device", "cpu"];
     // The run to kill: many steps, killed once it is past its second checkpoint.
     let killed = dir.path().join("killed");
