@@ -9,22 +9,20 @@ use crate::error::{ModelError, Result};
 /// lavapipe on machines without a GPU).
 #[allow(deprecated)]
 pub fn device_from_name(name: &str) -> Result<Device> {
-    match name {
+    match default_device_env_name(name) {
         #[cfg(feature = "ndarray")]
-        "ndarray" => Ok(Device::ndarray()),
+        Some("ndarray") => Ok(Device::ndarray()),
         #[cfg(feature = "flex")]
-        "flex" | "cpu" => Ok(Device::flex()),
-        #[cfg(all(feature = "ndarray", not(feature = "flex")))]
-        "cpu" => Ok(Device::ndarray()),
+        Some("flex") => Ok(Device::flex()),
         #[cfg(feature = "wgpu")]
-        "wgpu" => Ok(Device::wgpu(DeviceKind::DefaultDevice)),
-        other => Err(ModelError::Device(other.to_string())),
+        Some("wgpu") => Ok(Device::wgpu(DeviceKind::DefaultDevice)),
+        _ => Err(ModelError::Device(name.to_string())),
     }
 }
 
-/// The `BURN_DEVICE` name of the backend that [`device_from_name`] picks for `name` (`flex`,
-/// `ndarray`, `wgpu`), `None` for an unknown name. Binaries pin Burn's default device to it,
-/// because Burn 0.22.1 creates some tensors on `Device::default()` whatever device the model is
+/// The backend, by its `BURN_DEVICE` name (`flex`, `ndarray`, `wgpu`), that `--device name`
+/// selects ([`device_from_name`] builds its device), `None` for an unknown or uncompiled name.
+/// Binaries pin Burn's default device to it, because Burn 0.22.1 creates some tensors on `Device::default()` whatever device the model is
 /// on (`ModuleOptimizer::load_record`: the optimizer state of a resumed run), and with the `wgpu`
 /// feature compiled in that default is a wgpu adapter: a CPU run would probe Vulkan.
 pub fn default_device_env_name(name: &str) -> Option<&'static str> {

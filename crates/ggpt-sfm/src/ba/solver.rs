@@ -141,7 +141,7 @@ fn initial_state(problem: &BaProblem) -> State {
     let focal_of = |k: &Matrix3<f64>| match problem.model {
         CameraModel::Pinhole => [k[(0, 0)], k[(1, 1)]],
         CameraModel::SimplePinhole => {
-            let f = 0.5 * (k[(0, 0)] + k[(1, 1)]);
+            let f = ggpt_core::io::colmap::simple_pinhole_focal(k);
             [f, f]
         }
     };
