@@ -111,6 +111,17 @@ pub struct GgptConfig {
     pub stride: Vec<usize>,
 }
 
+/// Largest channel count of a stage [`GgptConfig::validate`] accepts (released: 512).
+pub const MAX_CHANNELS: usize = 4096;
+/// Largest number of blocks in a stage (released: 6).
+pub const MAX_DEPTH: usize = 64;
+/// Largest MLP expansion ratio (released: 4).
+pub const MAX_MLP_RATIO: usize = 16;
+/// Largest serialization patch size (released: 1024).
+pub const MAX_PATCH_SIZE: usize = 1 << 24;
+/// Largest trainable parameter count (released: 53,409,828; 2^30 is 4 GiB of f32 weights).
+pub const MAX_PARAMETERS: usize = 1 << 30;
+
 impl GgptConfig {
     /// The released checkpoint's configuration (network.md §1.1), 53,409,828 parameters.
     pub fn released() -> Self {
@@ -280,6 +291,25 @@ impl GgptConfig {
         }
         if !(0.0..1.0).contains(&self.drop_path) {
             return Err(format!("drop_path {} outside [0, 1)", self.drop_path));
+        }
+        // Sanity bounds, far above any published configuration, so that a corrupt or edited
+        // configuration is an error here and not a multi-terabyte allocation in `Ggpt::new`.
+        let channels = self.enc_channels.iter().chain(&self.dec_channels);
+        if let Some(c) = channels.into_iter().find(|&&c| c > MAX_CHANNELS) {
+            return Err(format!("{c} channels in a stage (at most {MAX_CHANNELS} supported)"));
+        }
+        if let Some(d) = self.enc_depths.iter().chain(&self.dec_depths).find(|&&d| d > MAX_DEPTH) {
+            return Err(format!("{d} blocks in a stage (at most {MAX_DEPTH} supported)"));
+        }
+        if self.mlp_ratio > MAX_MLP_RATIO || self.head_width > MAX_CHANNELS || self.patch_size > MAX_PATCH_SIZE {
+            return Err(format!(
+                "mlp_ratio {} / head_width {} / patch_size {} out of range (at most {MAX_MLP_RATIO} / {MAX_CHANNELS} / {MAX_PATCH_SIZE})",
+                self.mlp_ratio, self.head_width, self.patch_size
+            ));
+        }
+        let params = self.parameter_count();
+        if params > MAX_PARAMETERS {
+            return Err(format!("{params} parameters (at most {MAX_PARAMETERS} supported; the released network has 53,409,828)"));
         }
         Ok(())
     }

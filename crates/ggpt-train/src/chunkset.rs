@@ -89,6 +89,24 @@ pub struct TrainChunk {
 }
 
 impl TrainChunk {
+    /// A deterministic chunk of `k` pixels with arbitrary in-range values, a third of them with a
+    /// DLT point and a fifth without GT (tests, benchmarks, fuzz seeds; `seed` varies the values).
+    pub fn deterministic(scene: usize, k: usize, seed: u32) -> TrainChunk {
+        let f = |i: usize, a: u32| (((i as u32).wrapping_mul(2_654_435_761).wrapping_add(seed * 97 + a * 13)) % 1000) as f32 / 500.0 - 1.0;
+        TrainChunk {
+            scene,
+            center: [0.5, -0.25, 2.0],
+            radius: 0.3,
+            pixels: (0..k as u32).map(|p| p * 3 + seed).collect(),
+            ff_pts: (0..k).map(|i| [f(i, 0), f(i, 1), f(i, 2)]).collect(),
+            ff_conf: (0..k).map(|i| 1.0 + (f(i, 3) + 1.0) * 2.0).collect(),
+            geo_pts: (0..k).map(|i| if i % 3 == 0 { [f(i, 4), f(i, 5), f(i, 6)] } else { [0.0; 3] }).collect(),
+            geo_msk: (0..k).map(|i| i % 3 == 0).collect(),
+            gt_pts: (0..k).map(|i| if i % 5 != 4 { [f(i, 0) * 0.9, f(i, 1) * 0.9, f(i, 2) * 0.9] } else { [0.0; 3] }).collect(),
+            gt_msk: (0..k).map(|i| i % 5 != 4).collect(),
+        }
+    }
+
     /// Pixels (dense tokens) `K`.
     pub fn len(&self) -> usize {
         self.pixels.len()
@@ -421,20 +439,23 @@ impl ChunkSet {
     /// Reads and verifies one shard.
     pub fn load_shard(&self, shard: &ShardEntry) -> Result<Vec<TrainChunk>> {
         let path = self.dir.join(&shard.file);
-        let bytes = std::fs::read(&path).map_err(|e| TrainError::Shard { path: path.clone(), message: format!("cannot read: {e}") })?;
+        // A mismatch is in the shard or in the manifest: the messages name both.
+        let manifest = self.dir.join(MANIFEST);
+        let m = manifest.display();
+        let bytes = std::fs::read(&path).map_err(|e| TrainError::Shard { path: path.clone(), message: format!("cannot read the shard listed in {m}: {e}") })?;
         if bytes.len() as u64 != shard.bytes {
             return Err(TrainError::Shard {
                 path,
-                message: format!("size {} bytes, the manifest says {} (truncated or replaced)", bytes.len(), shard.bytes),
+                message: format!("size {} bytes, {m} says {} (truncated or replaced shard, or edited manifest)", bytes.len(), shard.bytes),
             });
         }
         let crc = crc32fast::hash(&bytes);
         if crc != shard.crc32 {
-            return Err(TrainError::Shard { path, message: format!("CRC-32 {crc:08x}, the manifest says {:08x} (corrupt)", shard.crc32) });
+            return Err(TrainError::Shard { path, message: format!("CRC-32 {crc:08x}, {m} says {:08x} (corrupt shard or edited manifest)", shard.crc32) });
         }
         let chunks = parse_shard(&bytes, &path, self.manifest.scenes.len())?;
         if chunks.len() != shard.chunks {
-            return Err(TrainError::Shard { path, message: format!("{} chunks, the manifest says {}", chunks.len(), shard.chunks) });
+            return Err(TrainError::Shard { path, message: format!("{} chunks, {m} says {}", chunks.len(), shard.chunks) });
         }
         Ok(chunks)
     }
@@ -446,19 +467,7 @@ pub(crate) mod tests {
 
     /// A small deterministic chunk for tests.
     pub(crate) fn toy_chunk(scene: usize, k: usize, seed: u32) -> TrainChunk {
-        let f = |i: usize, a: u32| (((i as u32).wrapping_mul(2654435761).wrapping_add(seed * 97 + a * 13)) % 1000) as f32 / 500.0 - 1.0;
-        TrainChunk {
-            scene,
-            center: [0.5, -0.25, 2.0],
-            radius: 0.3,
-            pixels: (0..k as u32).map(|p| p * 3 + seed).collect(),
-            ff_pts: (0..k).map(|i| [f(i, 0), f(i, 1), f(i, 2)]).collect(),
-            ff_conf: (0..k).map(|i| 1.0 + (f(i, 3) + 1.0) * 2.0).collect(),
-            geo_pts: (0..k).map(|i| if i % 3 == 0 { [f(i, 4), f(i, 5), f(i, 6)] } else { [0.0; 3] }).collect(),
-            geo_msk: (0..k).map(|i| i % 3 == 0).collect(),
-            gt_pts: (0..k).map(|i| if i % 5 != 4 { [f(i, 0) * 0.9, f(i, 1) * 0.9, f(i, 2) * 0.9] } else { [0.0; 3] }).collect(),
-            gt_msk: (0..k).map(|i| i % 5 != 4).collect(),
-        }
+        TrainChunk::deterministic(scene, k, seed)
     }
 
     fn scene(name: &str, split: Split) -> SceneEntry {

@@ -10,6 +10,7 @@
 //! * Checkpoints `checkpoints/step-XXXXXXXX/{model.bpk, optim.bpk, state.json}` are written into
 //!   a temporary directory and renamed (atomic); `--resume` picks the newest complete one.
 
+use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -336,13 +337,70 @@ pub fn load_checkpoint(dir: &Path, device: &Device) -> Result<(Ggpt, ModuleOptim
     let state_path = dir.join("state.json");
     let text = std::fs::read_to_string(&state_path).map_err(io_err(&state_path))?;
     let state: TrainState = serde_json::from_str(&text).map_err(|e| TrainError::Format { path: state_path.clone(), message: e.to_string() })?;
+    state
+        .options
+        .model
+        .validate()
+        .map_err(|m| TrainError::Format { path: state_path.clone(), message: format!("options.model: {m}") })?;
     let plain = device.clone().without_autodiff();
     let model = Ggpt::new(&state.options.model, &plain);
-    let model = ggpt_model::weights::load_burnpack(model, &dir.join("model.bpk"))?;
-    let optim = adam()
-        .load(dir.join("optim.bpk"))
-        .map_err(|e| TrainError::Checkpoint { path: dir.join("optim.bpk"), message: format!("{e:?}") })?;
+    let weights = dir.join("model.bpk");
+    // The architecture comes from state.json: a mismatch is in either file, so both are named.
+    let model = ggpt_model::weights::load_burnpack(model, &weights).map_err(|e| TrainError::Checkpoint {
+        path: weights.clone(),
+        message: format!("{e} (the network architecture is the one recorded in {})", state_path.display()),
+    })?;
+    let optim = load_optimizer(&dir.join("optim.bpk"), &model, &weights, state.step)?;
     Ok((model.fork(device).train(), optim, state))
+}
+
+/// Key suffix of the per-parameter rank scalar in Burn 0.22.1's optimizer records
+/// (`burn-optim` `module_optimizer.rs`, `RANK_KEY`).
+const OPTIM_RANK_SUFFIX: &str = ".__rank";
+
+/// Reads the Adam state `optim.bpk` of a checkpoint of `model` after `step` steps, checking it
+/// before Burn sees it: Burn 0.22.1's `ModuleOptimizer::load_record` panics on a state tensor
+/// without a parameter id, and silently drops the state of a parameter it cannot rebuild (a
+/// corrupt file would crash, or quietly restart Adam's moments and break exact resume). Here
+/// every state tensor must carry the id its name starts with, every recorded parameter must be
+/// one of the model's (some, after the first step), and every tensor must survive the load.
+/// `model_origin` is the file `model` was loaded from (named in a mismatch).
+pub fn load_optimizer(path: &Path, model: &Ggpt, model_origin: &Path, step: u64) -> Result<ModuleOptimizer> {
+    let err = |message: String| TrainError::Checkpoint { path: path.to_path_buf(), message };
+    let bytes = std::fs::read(path).map_err(io_err(path))?;
+    let reader = burn_pack::Reader::from_bytes(burn_pack::Bytes::from_bytes_vec(bytes.clone())).map_err(|e| err(format!("not an optimizer record: {e}")))?;
+    let ranked: BTreeSet<u64> = reader.scalars().keys().filter_map(|k| k.strip_suffix(OPTIM_RANK_SUFFIX)?.parse().ok()).collect();
+    let tensors = reader.into_tensors().map_err(|e| err(format!("corrupt optimizer record: {e}")))?;
+    for t in &tensors {
+        let id = t.param_id.ok_or_else(|| err(format!("state tensor {} carries no parameter id", t.name)))?;
+        if !t.name.starts_with(&format!("{id}.")) || !ranked.contains(&id) {
+            return Err(err(format!("state tensor {} does not belong to a recorded parameter (id {id})", t.name)));
+        }
+    }
+    struct Ids(BTreeSet<u64>);
+    impl ModuleVisitor for Ids {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            self.0.insert(param.id.val());
+        }
+    }
+    let mut ids = Ids(BTreeSet::new());
+    model.visit(&mut ids);
+    // Parameters that never received a gradient have no state; a state of a parameter the
+    // network does not have would be ignored by Burn, and after a step there is some state.
+    let foreign = ranked.difference(&ids.0).count();
+    if foreign > 0 || (step > 0 && ranked.is_empty()) {
+        return Err(err(format!(
+            "state of {} parameters, {foreign} of them not parameters of the network loaded from {} (step {step}; the parameter ids of the two files must match)",
+            ranked.len(),
+            model_origin.display()
+        )));
+    }
+    let optim = adam().from_bytes(burn_pack::Bytes::from_bytes_vec(bytes)).map_err(|e| err(format!("{e:?}")))?;
+    let kept = optim.to_record().len();
+    if kept != tensors.len() {
+        return Err(err(format!("{} of {} state tensors could not be restored (wrong shape or dtype)", tensors.len() - kept, tensors.len())));
+    }
+    Ok(optim)
 }
 
 /// Everything [`run`] needs besides the options.

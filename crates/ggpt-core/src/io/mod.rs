@@ -11,3 +11,4 @@ pub mod ggpt_eval;
 pub mod infer_folder;
 pub mod ply;
 pub mod colmap;
+pub mod torch_zip;

@@ -339,6 +339,11 @@ pub fn encode_npy(a: &NpyArray) -> Result<Vec<u8>> {
     Ok(out)
 }
 
+/// Largest expansion of deflate (1032:1): bounds what a member's compressed bytes can decode to.
+const MAX_DEFLATE_RATIO: u64 = 1032;
+/// Largest buffer reserved up front for one member (it grows past this when the data does).
+const MAX_NPZ_PREALLOC: u64 = 64 << 20;
+
 /// Reads every `<key>.npy` member of a `.npz` archive (stored or deflated), keyed by `<key>`.
 /// Members not ending in `.npy` are ignored.
 pub fn read_npz(path: &Path) -> Result<BTreeMap<String, NpyArray>> {
@@ -351,8 +356,19 @@ pub fn read_npz(path: &Path) -> Result<BTreeMap<String, NpyArray>> {
         let name = f.name().map_err(|e| zerr("", e))?.into_owned();
         let Some(key) = name.strip_suffix(".npy") else { continue };
         let key = key.to_string();
-        let mut buf = Vec::with_capacity(usize::try_from(f.size()).unwrap_or(0).min(1 << 30));
-        f.read_to_end(&mut buf).map_err(|e| CoreError::format(path, &key, format!("cannot decompress member: {e}")))?;
+        // The declared size is only a hint: it is capped by what the compressed bytes can
+        // expand to, and reading stops one byte past it (a member larger than declared is an
+        // error, not an unbounded buffer).
+        let declared = f.size();
+        let hint = declared.min(f.compressed_size().saturating_mul(MAX_DEFLATE_RATIO).saturating_add(1024)).min(MAX_NPZ_PREALLOC);
+        let mut buf = Vec::with_capacity(usize::try_from(hint).unwrap_or(0));
+        (&mut f)
+            .take(declared.saturating_add(1))
+            .read_to_end(&mut buf)
+            .map_err(|e| CoreError::format(path, &key, format!("cannot decompress member: {e}")))?;
+        if buf.len() as u64 > declared {
+            return Err(CoreError::format(path, &key, format!("member is larger than its declared {declared} bytes")));
+        }
         let arr = parse_npy(path, &key, &buf)?;
         if out.insert(key.clone(), arr).is_some() {
             return Err(CoreError::format(path, &key, "duplicate member"));

@@ -273,13 +273,19 @@ fn read_checked(dir: &Path, m: &Manifest, rel: &str) -> Result<(PathBuf, Vec<u8>
         .iter()
         .find(|f| f.path == rel)
         .ok_or_else(|| CoreError::format(dir.join(MANIFEST), "files", format!("no checksum entry for {rel}")))?;
-    let bytes = std::fs::read(&path).map_err(|e| CoreError::io(&path, e))?;
+    // A mismatch is in the data file or in the manifest: the message names both.
+    let manifest = dir.join(MANIFEST);
+    let bytes = std::fs::read(&path).map_err(|e| CoreError::format(&path, "", format!("cannot read the file listed in {}: {e}", manifest.display())))?;
     if bytes.len() as u64 != sum.bytes {
-        return Err(CoreError::format(&path, "bytes", format!("size {} differs from the manifest's {} (truncated or replaced file)", bytes.len(), sum.bytes)));
+        return Err(CoreError::format(
+            &path,
+            "bytes",
+            format!("size {} differs from the {} of {} (truncated or replaced file, or edited manifest)", bytes.len(), sum.bytes, manifest.display()),
+        ));
     }
     let crc = format!("{:08x}", crc32fast::hash(&bytes));
     if crc != sum.crc32.to_ascii_lowercase() {
-        return Err(CoreError::format(&path, "crc32", format!("checksum mismatch: file has {crc}, manifest says {}", sum.crc32)));
+        return Err(CoreError::format(&path, "crc32", format!("checksum mismatch: file has {crc}, {} says {} (corrupt file or edited manifest)", manifest.display(), sum.crc32)));
     }
     Ok((path, bytes))
 }
@@ -289,12 +295,14 @@ fn read_project_scene(dir: &Path) -> Result<Scene> {
     let m = read_manifest(dir)?;
     let (path, bytes) = read_checked(dir, &m, TENSORS)?;
     let f = StFile::from_bytes(&path, bytes)?;
-    check_keys(&f, &m)?;
+    let manifest = dir.join(MANIFEST);
+    let layout = |e| with_layout_source(e, &manifest);
+    check_keys(&f, &m).map_err(layout)?;
     let (n, h, w) = (m.n, m.h, m.w);
-    let images = f.f32_finite("images", &[n, h, w, 3])?;
-    let gt = if m.parts.gt { Some(read_gt(&f, &m)?) } else { None };
-    let ff = if m.parts.ff { Some(read_ff(&f, n, h, w)?) } else { None };
-    let sfm = if m.parts.sfm { Some(read_sfm(&f, n, h, w)?) } else { None };
+    let images = f.f32_finite("images", &[n, h, w, 3]).map_err(layout)?;
+    let gt = if m.parts.gt { Some(read_gt(&f, &m).map_err(layout)?) } else { None };
+    let ff = if m.parts.ff { Some(read_ff(&f, n, h, w).map_err(layout)?) } else { None };
+    let sfm = if m.parts.sfm { Some(read_sfm(&f, n, h, w).map_err(layout)?) } else { None };
     let mut matches = Vec::new();
     for name in &m.matchers {
         let rel = format!("matches/{name}.safetensors");
@@ -304,7 +312,7 @@ fn read_project_scene(dir: &Path) -> Result<Scene> {
             return Err(CoreError::format(
                 dir.join(&rel),
                 "pred_matches",
-                format!("N={} h={} w={} differ from the manifest's N={n} h={h} w={w}", mf.n, mf.h, mf.w),
+                format!("N={} h={} w={} differ from N={n} h={h} w={w} of {}", mf.n, mf.h, mf.w, dir.join(MANIFEST).display()),
             ));
         }
         let mut set = mf.set;
@@ -312,6 +320,17 @@ fn read_project_scene(dir: &Path) -> Result<Scene> {
         matches.push(set);
     }
     Ok(Scene { name: m.name.clone(), dims: Dims { n, h, w }, images, gt, ff, sfm, matches })
+}
+
+/// A shape or key mismatch of `scene.safetensors` is in that file or in the manifest that
+/// describes it (`N`, `h`, `w`, parts): the message then names the manifest too.
+fn with_layout_source(e: CoreError, manifest: &Path) -> CoreError {
+    match e {
+        CoreError::Format { path, key, message } if message.contains("shape") || message.contains("manifest's parts") => {
+            CoreError::Format { path, key, message: format!("{message} (layout from {})", manifest.display()) }
+        }
+        other => other,
+    }
 }
 
 /// Every tensor the manifest implies must exist and no other may.
