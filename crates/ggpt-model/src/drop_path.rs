@@ -1,7 +1,23 @@
 //! Drop path (stochastic depth) on a residual branch, training only (network.md §11.3).
 
+use std::cell::RefCell;
+
 use burn::module::{Flag, Module, Param};
-use burn::tensor::{Distribution, Tensor};
+use burn::tensor::{Distribution, Tensor, TensorData};
+use rand::{Rng, SeedableRng};
+
+thread_local! {
+    /// The mask RNG of this thread ([`seed_drop_path`]).
+    static MASK_RNG: RefCell<Option<rand_pcg::Pcg64>> = const { RefCell::new(None) };
+}
+
+/// Seeds (or, with `None`, clears) the drop-path mask RNG of the **current thread**. While it is
+/// set, masks are drawn on the host from it, in forward order, and uploaded; so a forward is
+/// reproducible from the seed alone, whatever other threads do on the same device (data-parallel
+/// replicas share a CPU device and its RNG). Unset, the device RNG is used.
+pub fn seed_drop_path(seed: Option<u64>) {
+    MASK_RNG.with(|r| *r.borrow_mut() = seed.map(rand_pcg::Pcg64::seed_from_u64));
+}
 
 /// Per row (token), independently per call: keep with probability `1 - p` and scale kept rows
 /// by `1 / (1 - p)`. Identity when `p = 0`, outside training mode (see [`DropPath::forward`]),
@@ -28,7 +44,12 @@ impl DropPath {
         }
         let [n, _] = x.dims();
         let keep = 1.0 - self.prob;
-        let mask = Tensor::<2>::random([n, 1], Distribution::Bernoulli(keep), &device).detach();
+        let host: Option<Vec<f32>> = MASK_RNG.with(|r| r.borrow_mut().as_mut().map(|rng| (0..n).map(|_| if rng.random::<f64>() < keep { 1.0 } else { 0.0 }).collect()));
+        let mask = match host {
+            Some(values) => Tensor::<2>::from_data(TensorData::new(values, [n, 1]), &device),
+            None => Tensor::<2>::random([n, 1], Distribution::Bernoulli(keep), &device),
+        }
+        .detach();
         x * mask.div_scalar(keep)
     }
 }

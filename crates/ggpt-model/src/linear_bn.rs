@@ -27,6 +27,6 @@ impl LinearBnGelu {
 
     /// `x [N, C_in] -> [N, C_out]`.
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        gelu(self.norm.forward(self.linear.forward(x)))
+        gelu(crate::norm::batch_norm_forward(&self.norm, self.linear.forward(x)))
     }
 }

@@ -95,6 +95,23 @@ impl Ggpt {
         out
     }
 
+    /// Every BatchNorm with its Burn module path (`embedding.norm`, `enc.{s}.down.norm`,
+    /// `dec.{s}.up.proj.norm`, `dec.{s}.up.proj_skip.norm`), in the order of
+    /// [`Ggpt::batch_norms_mut`]; `weights::official_key` gives the official names.
+    pub fn named_batch_norms(&self) -> Vec<(String, &BatchNorm)> {
+        let mut out = vec![("embedding.norm".to_string(), &self.embedding.norm)];
+        for (s, stage) in self.enc.iter().enumerate() {
+            if let Some(down) = &stage.down {
+                out.push((format!("enc.{s}.down.norm"), &down.norm));
+            }
+        }
+        for (s, stage) in self.dec.iter().enumerate() {
+            out.push((format!("dec.{s}.up.proj.norm"), &stage.up.proj.norm));
+            out.push((format!("dec.{s}.up.proj_skip.norm"), &stage.up.proj_skip.norm));
+        }
+        out
+    }
+
     /// Sets the drop probability of every block's drop path (`0` switches it off while the
     /// training flag stays on).
     pub fn set_drop_path(&mut self, prob: f64) {

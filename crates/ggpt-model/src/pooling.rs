@@ -45,7 +45,7 @@ impl SerializedPooling {
             .max_dim(1)
             .reshape([pool.num_coarse, c]);
         rec.record(|| format!("{name}.pooled"), &pooled);
-        let out = gelu(self.norm.forward(pooled));
+        let out = gelu(crate::norm::batch_norm_forward(&self.norm, pooled));
         rec.record(|| format!("{name}.out"), &out);
         out
     }

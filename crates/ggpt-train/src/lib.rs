@@ -15,6 +15,7 @@ pub mod chunkset;
 pub mod error;
 pub mod evaluate;
 pub mod export;
+pub mod grads;
 pub mod loss;
 pub mod plot;
 pub mod prepare;

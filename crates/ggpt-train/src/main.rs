@@ -46,6 +46,12 @@ enum Command {
     Export(ExportArgs),
     /// Plot `metrics.jsonl` as a PNG training curve.
     Plot(PlotArgs),
+    /// One training step made visible, for verification against a reference: per input case
+    /// (its own batch, from the loaded weights, train mode, drop path 0) the loss terms, the
+    /// train-mode outputs, the gradient of every parameter under its official name and the
+    /// BatchNorm running statistics after the forward; optionally the parameters after one
+    /// Adam step from case 0. See docs/training.md.
+    Grads(GradsArgs),
 }
 
 /// Chunk sampler options shared by `prepare` and `eval` (pipeline.md §5). `eval` takes a flag
@@ -210,10 +216,17 @@ struct TrainArgs {
     /// Compute device: `cpu` (fastest CPU backend), `ndarray`, `flex`, `wgpu`.
     #[arg(long, default_value = "cpu")]
     device: String,
-    /// Data-parallel replicas (local devices). Burn 0.22.1 implements gradient all-reduce only
-    /// for CUDA devices (see docs/training.md); other values than 1 are rejected on CPU / wgpu.
-    #[arg(long, default_value_t = 1)]
-    devices: usize,
+    /// Data-parallel replicas, one per listed device, main device first (e.g. `cpu,cpu` or
+    /// `wgpu:0,wgpu:1`): the batch is split across them, gradients are averaged on the main
+    /// device (docs/training.md). Overrides --device. Default: one replica on --device (on
+    /// resume: the devices recorded in the checkpoint).
+    #[arg(long, value_delimiter = ',')]
+    devices: Option<Vec<String>>,
+    /// Gradient accumulation: micro-batches per replica and step (the batch is split into
+    /// replicas x K parts; BatchNorm sees each part's statistics). Default 1 (on resume: the
+    /// checkpoint's).
+    #[arg(long)]
+    grad_accum: Option<usize>,
     /// Resume: a bare `--resume` (or `--resume latest`) takes the newest complete checkpoint in
     /// `--out`; `--resume DIR` that checkpoint directory.
     #[arg(long, num_args = 0..=1, default_missing_value = RESUME_LATEST, value_name = "DIR|latest")]
@@ -280,6 +293,36 @@ struct ExportArgs {
     /// Chunks per recalibration forward (default: the run's batch size).
     #[arg(long)]
     bn_recalibrate_batch_size: Option<usize>,
+}
+
+#[derive(Args, Debug)]
+struct GradsArgs {
+    /// Weights: official `.pth` / `.safetensors`, or a burnpack `.bpk` of this project.
+    #[arg(long)]
+    weights: PathBuf,
+    /// Model configuration JSON (the official `model_config` object, or a file with a
+    /// `model_config` key such as a fixture manifest). Conflicts with `--preset`.
+    #[arg(long, conflicts_with = "preset")]
+    model_config: Option<PathBuf>,
+    /// Built-in configuration: `released`, `small` (fixture) or `tiny`.
+    #[arg(long)]
+    preset: Option<String>,
+    /// Input cases (safetensors): `case{K}/ff_pts`, `ff_pts_conf`, `geo_pts`, `geo_msks`,
+    /// `gt_pts`, `gt_msks`, normalised chunk coordinates.
+    #[arg(long)]
+    input: PathBuf,
+    /// Output (safetensors, written atomically): `case{K}/loss`, `l_conf`, `l_id`,
+    /// `ff_pts_out`, `ff_pts_conf_out`, `grad/<name>`, `bn_after/<name>.running_mean|running_var`
+    /// and, with --adam-step-lr, `case0/after_adam/<name>`.
+    #[arg(long)]
+    output: PathBuf,
+    /// Compute device: `cpu`, `ndarray`, `flex` or `wgpu`.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// After the case-0 backward, take one Adam step (betas 0.9 / 0.999, eps 1e-8, PyTorch
+    /// semantics, the trainer's optimiser) with this learning rate.
+    #[arg(long)]
+    adam_step_lr: Option<f64>,
 }
 
 #[derive(Args, Debug)]
@@ -423,16 +466,16 @@ fn install_ctrl_c(flag: &Arc<AtomicBool>) {
 const RESUME_LATEST: &str = "latest";
 
 fn train(a: &TrainArgs) -> Result<()> {
-    if a.devices != 1 {
-        bail!(
-            "--devices {}: Burn 0.22.1 performs the gradient all-reduce of distributed parameters only on CUDA devices \
-             (burn-backend-extension marks flex / ndarray as non-distributed and cubecl's wgpu/CPU runtimes panic in \
-             all_reduce); this build has no CUDA backend, so data-parallel training is unavailable (docs/training.md)",
-            a.devices
-        );
+    if a.grad_accum == Some(0) {
+        bail!("--grad-accum 0: must be at least 1");
     }
     let data = ChunkSet::open(&a.data)?;
-    let device = ggpt_model::device::device_from_name(&a.device)?;
+    let device_names: Vec<String> = match &a.devices {
+        Some(list) if list.is_empty() => bail!("--devices: empty list"),
+        Some(list) => list.clone(),
+        None => vec![a.device.clone()],
+    };
+    let device = ggpt_model::device::device_from_name(&device_names[0])?;
     let ad = device.clone().autodiff();
     let resume_dir = match &a.resume {
         None => None,
@@ -446,6 +489,18 @@ fn train(a: &TrainArgs) -> Result<()> {
         let (m, o, st) = trainer::load_checkpoint(&dir, &ad)?;
         let mut opts = st.options.clone();
         opts.steps = a.steps; // allow extending a run
+        if let Some(list) = &a.devices
+            && *list != opts.devices
+        {
+            tracing::warn!("--devices {} differs from the checkpoint's {:?}: the trajectory changes", list.join(","), opts.devices);
+            opts.devices = list.clone();
+        }
+        if let Some(k) = a.grad_accum
+            && k != opts.grad_accum
+        {
+            tracing::warn!("--grad-accum {k} differs from the checkpoint's {}: the trajectory changes", opts.grad_accum);
+            opts.grad_accum = k;
+        }
         tracing::info!("resumed from {} at step {}", dir.display(), st.step);
         (m, o, st.step, opts)
     } else {
@@ -478,14 +533,40 @@ fn train(a: &TrainArgs) -> Result<()> {
             val_chunks: a.val_chunks,
             val_max_tokens: a.val_max_tokens,
             keep_checkpoints: a.keep_checkpoints,
+            grad_accum: a.grad_accum.unwrap_or(1),
+            devices: if a.devices.is_some() { device_names.clone() } else { Vec::new() },
         };
         (m.fork(&ad).train(), trainer::adam(), 0, opts)
     };
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let cfg_path = a.out.join("config.json");
-    let run_cfg = serde_json::json!({"options": opts, "data": a.data, "device": a.device, "init_from": a.init_from,
+    // the replicas: the recorded devices (a resumed run keeps its own), else --device
+    let replica_names: Vec<String> = if opts.devices.is_empty() { vec![a.device.clone()] } else { opts.devices.clone() };
+    let replicas: Vec<burn::tensor::Device> = replica_names
+        .iter()
+        .map(|n| ggpt_model::device::device_from_name(n).map(|d| d.autodiff()))
+        .collect::<std::result::Result<_, _>>()?;
+    let ad = replicas[0].clone();
+    let parts = replicas.len() * opts.grad_accum.max(1);
+    if opts.batch_size < parts {
+        bail!("--batch-size {} is smaller than {} replica(s) x --grad-accum {}: every micro-batch needs a chunk", opts.batch_size, replicas.len(), opts.grad_accum);
+    }
+    let batchnorm = if parts == 1 {
+        "batch statistics over all chunks of one forward".to_string()
+    } else {
+        format!(
+            "batch statistics per micro-batch: the batch of {} chunks is split into {} replica(s) x {} micro-batch(es) of about {} chunks; \
+             running statistics updated sequentially within a replica and averaged over replicas",
+            opts.batch_size,
+            replicas.len(),
+            opts.grad_accum,
+            opts.batch_size / parts
+        )
+    };
+    let run_cfg = serde_json::json!({"options": opts, "data": a.data, "device": replica_names[0], "replicas": replica_names,
+        "grad_accum": opts.grad_accum, "init_from": a.init_from,
         "parameters": ggpt_model::weights::num_trainable_params(&model),
-        "batchnorm": "batch statistics over all chunks of one forward (no micro-batching)"});
+        "batchnorm": batchnorm});
     ggpt_scene::export::write_json(&cfg_path, &run_cfg)?;
     tracing::info!("training {} parameters on {} ({} steps from {start})", ggpt_model::weights::num_trainable_params(&model), a.device, opts.steps);
     let stop = Arc::new(AtomicBool::new(false));
@@ -503,7 +584,7 @@ fn train(a: &TrainArgs) -> Result<()> {
             l.tokens_per_s
         ));
     };
-    let res = trainer::run(&opts, RunContext { out: &a.out, data: &data, device: ad, model, optim, start_step: start, stop, on_step: &mut on_step })?;
+    let res = trainer::run(&opts, RunContext { out: &a.out, data: &data, device: ad, replicas, model, optim, start_step: start, stop, on_step: &mut on_step })?;
     pb.finish_and_clear();
     if res.interrupted {
         println!("interrupted at step {}: checkpoint written to {}", res.steps, trainer::checkpoint_dir(&a.out, res.steps).display());
@@ -781,7 +862,8 @@ fn default_run(out: &Path) -> Result<()> {
         val_max_tokens: 200_000,
         keep_checkpoints: 2,
         device: "cpu".into(),
-        devices: 1,
+        devices: None,
+        grad_accum: None,
         resume: None,
         init_from: None,
         export_to: None,
@@ -792,6 +874,37 @@ fn default_run(out: &Path) -> Result<()> {
 /// requested device, so that a CPU run touches no GPU API: Burn 0.22.1 restores the optimizer
 /// state of `--resume` on `Device::default()`, which is a wgpu adapter when wgpu is compiled in
 /// (a Vulkan probe, and XDG_RUNTIME_DIR errors on headless machines).
+fn grads(a: &GradsArgs) -> Result<()> {
+    if let Some(lr) = a.adam_step_lr
+        && !(lr.is_finite() && lr > 0.0)
+    {
+        bail!("--adam-step-lr {lr}: must be a finite number > 0");
+    }
+    let cfg = match (&a.model_config, &a.preset) {
+        (Some(path), _) => GgptConfig::from_json_file(path)?,
+        (None, Some(name)) => GgptConfig::preset(name)?,
+        (None, None) => bail!("give --model-config FILE or --preset released|small|tiny"),
+    };
+    let plain = ggpt_model::device::device_from_name(&a.device)?;
+    let device = plain.clone().autodiff();
+    let fresh = ggpt_model::weights::load_checkpoint(Ggpt::new(&cfg, &plain), &a.weights).with_context(|| format!("loading weights {}", a.weights.display()))?;
+    let cases = ggpt_train::grads::read_cases(&a.input).with_context(|| format!("reading {}", a.input.display()))?;
+    let bar = ProgressBar::new(cases.len() as u64);
+    bar.set_style(ProgressStyle::with_template("{bar:30} {pos}/{len} cases [{elapsed_precise}]").unwrap_or_else(|_| ProgressStyle::default_bar()));
+    let mut results = Vec::with_capacity(cases.len());
+    for (k, case) in cases.iter().enumerate() {
+        let lr = if k == 0 { a.adam_step_lr } else { None };
+        let r = ggpt_train::grads::run_case(&fresh, &cfg, case, &device, lr).with_context(|| format!("case {k}"))?;
+        tracing::info!("case {k}: {} tokens, L {:.6} (L_conf {:.6}, L_id {:.6}), {} gradients", case.num_tokens(), r.loss[0], r.loss[1], r.loss[2], r.grads.len());
+        results.push(r);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    ggpt_train::grads::write_results(&a.output, &results).with_context(|| format!("writing {}", a.output.display()))?;
+    println!("{}", a.output.display());
+    Ok(())
+}
+
 fn pin_default_device(device: &str) {
     if std::env::var_os("BURN_DEVICE").is_none()
         && let Some(name) = ggpt_model::device::default_device_env_name(device)
@@ -809,8 +922,9 @@ fn main() -> Result<()> {
         .init();
     let cli = Cli::parse();
     pin_default_device(match &cli.command {
-        Some(Command::Train(a)) => &a.device,
+        Some(Command::Train(a)) => a.devices.as_ref().and_then(|d| d.first()).unwrap_or(&a.device),
         Some(Command::Eval(a)) => &a.device,
+        Some(Command::Grads(a)) => &a.device,
         _ => "cpu",
     });
     match &cli.command {
@@ -820,5 +934,6 @@ fn main() -> Result<()> {
         Some(Command::Eval(a)) => eval(a),
         Some(Command::Export(a)) => export(a),
         Some(Command::Plot(a)) => plot(a),
+        Some(Command::Grads(a)) => grads(a),
     }
 }

@@ -69,6 +69,17 @@ pub struct TrainOptions {
     pub val_max_tokens: usize,
     /// Checkpoints kept.
     pub keep_checkpoints: usize,
+    /// Micro-batches per replica and step (gradient accumulation, `--grad-accum`), >= 1.
+    #[serde(default = "one")]
+    pub grad_accum: usize,
+    /// Devices of the data-parallel replicas, main device first (`--devices`; empty: one
+    /// replica on the training device). Recorded so that a resume runs the same replicas.
+    #[serde(default)]
+    pub devices: Vec<String>,
+}
+
+fn one() -> usize {
+    1
 }
 
 /// `state.json` of a checkpoint.
@@ -218,21 +229,199 @@ pub struct StepLoss {
     pub tokens: usize,
 }
 
-/// One optimisation step on `chunks` (one forward). `device` must be an autodiff device.
+/// One optimisation step on `chunks` (one forward, one replica). `device` must be an
+/// autodiff device. Drop-path masks come from the device RNG unless the calling thread seeded
+/// its own ([`ggpt_model::drop_path::seed_drop_path`]).
 pub fn train_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig, chunks: &[&TrainChunk], lr: f64, clip: Option<f64>, device: &Device) -> Result<(Ggpt, StepLoss)> {
-    let inputs: Vec<ChunkInput> = chunks.iter().map(|c| c.to_input()).collect();
-    let batch = ggpt_model::infer::prepare_chunks(cfg, &inputs, device)?;
-    let out = model.forward(&batch);
-    let parts = loss(out.tokens_xyz, out.tokens_conf, &HostTargets::new(chunks).upload(device));
-    let vals = ggpt_model::model::read_tensor_f32(&Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0), "loss")?;
-    let (total, conf, id) = (vals.first().copied().unwrap_or(f32::NAN), vals.get(1).copied().unwrap_or(f32::NAN), vals.get(2).copied().unwrap_or(f32::NAN));
-    if !total.is_finite() {
-        return Err(TrainError::Invalid(format!("non-finite loss {total} (L_conf {conf}, L_id {id})")));
+    let plan = StepPlan { devices: std::slice::from_ref(device), grad_accum: 1, drop_path_seed: None };
+    parallel_step(model, optim, cfg, chunks, lr, clip, &plan)
+}
+
+/// How a step is spread over replicas and micro-batches.
+#[derive(Debug, Clone, Copy)]
+pub struct StepPlan<'a> {
+    /// Autodiff devices of the replicas, main device (where the optimiser steps) first. The
+    /// same device may appear several times (replicas in threads).
+    pub devices: &'a [Device],
+    /// Micro-batches per replica (>= 1).
+    pub grad_accum: usize,
+    /// Base seed of the drop-path masks: part `p` of the step draws from
+    /// `step_seed(base, p, 3)` on its own thread, so the step does not depend on thread timing.
+    /// `None`: the device RNG (one replica only).
+    pub drop_path_seed: Option<u64>,
+}
+
+/// The batch cut into `parts` contiguous parts of near-equal size (earlier parts one larger).
+pub fn split_batch<'c, 'a>(chunks: &'a [&'c TrainChunk], parts: usize) -> Vec<&'a [&'c TrainChunk]> {
+    let (q, r) = (chunks.len() / parts, chunks.len() % parts);
+    let mut out = Vec::with_capacity(parts);
+    let mut start = 0;
+    for p in 0..parts {
+        let len = q + usize::from(p < r);
+        out.push(&chunks[start..start + len]);
+        start += len;
     }
-    let mut grads = GradientsParams::from_grads(parts.total.backward(), &model);
+    out
+}
+
+/// What one replica returns: its summed, chunk-weighted gradients (on the main device), its
+/// chunk-weighted loss terms, tokens, and its BatchNorm running statistics after its forwards.
+struct ReplicaResult {
+    grads: GradientsParams,
+    loss: [f64; 3],
+    tokens: usize,
+    running: Vec<(Tensor<1>, Tensor<1>)>,
+}
+
+/// Runs the micro-batches `parts` (indices `first..`) on `replica`, sequentially.
+fn run_replica(replica: Ggpt, cfg: &GgptConfig, parts: &[&[&TrainChunk]], first: usize, total_chunks: usize, plan: &StepPlan<'_>, main: &Device) -> Result<ReplicaResult> {
+    let device = replica.devices().first().cloned().ok_or_else(|| TrainError::Invalid("replica without a device".into()))?;
+    let mut acc: Option<GradientsParams> = None;
+    let (mut loss_sum, mut tokens) = ([0.0f64; 3], 0usize);
+    for (j, part) in parts.iter().enumerate() {
+        ggpt_model::drop_path::seed_drop_path(plan.drop_path_seed.map(|s| step_seed(s, (first + j) as u64, 3)));
+        let inputs: Vec<ChunkInput> = part.iter().map(|c| c.to_input()).collect();
+        let batch = ggpt_model::infer::prepare_chunks(cfg, &inputs, &device)?;
+        let out = replica.forward(&batch);
+        let parts = loss(out.tokens_xyz, out.tokens_conf, &HostTargets::new(part).upload(&device));
+        let vals = ggpt_model::model::read_tensor_f32(&Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0), "loss")?;
+        let v = |i: usize| vals.get(i).copied().unwrap_or(f32::NAN);
+        if !v(0).is_finite() {
+            return Err(TrainError::Invalid(format!("non-finite loss {} (L_conf {}, L_id {})", v(0), v(1), v(2))));
+        }
+        // the part's mean loss weighted by its share of the batch: the sum over parts is the
+        // batch's mean loss, whatever the split
+        let w = part.len() as f64 / total_chunks as f64;
+        for (k, s) in loss_sum.iter_mut().enumerate() {
+            *s += w * f64::from(v(k));
+        }
+        tokens += batch.num_tokens;
+        let g = GradientsParams::from_grads(parts.total.mul_scalar(w).backward(), &replica);
+        acc = Some(match acc {
+            None => g,
+            Some(a) => add_gradients(&replica, a, g),
+        });
+    }
+    ggpt_model::drop_path::seed_drop_path(None);
+    let grads = acc.ok_or_else(|| TrainError::Invalid("replica without a micro-batch".into()))?.to_device(main, &replica);
+    let synced = replica.valid();
+    let running = synced.named_batch_norms().into_iter().map(|(_, bn)| (bn.running_mean.value().to_device(main), bn.running_var.value().to_device(main))).collect();
+    Ok(ReplicaResult { grads, loss: loss_sum, tokens, running })
+}
+
+/// `a + b` for every parameter of `model` (a missing side counts as 0). Summation order is
+/// fixed (replica / micro-batch order), so steps are reproducible.
+fn add_gradients(model: &Ggpt, a: GradientsParams, b: GradientsParams) -> GradientsParams {
+    struct Add {
+        a: GradientsParams,
+        b: GradientsParams,
+    }
+    impl ModuleVisitor for Add {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let sum = match (self.a.remove::<D>(param.id), self.b.remove::<D>(param.id)) {
+                (Some(x), Some(y)) => {
+                    let device = x.device();
+                    Some(x + y.to_device(&device))
+                }
+                (x, y) => x.or(y),
+            };
+            if let Some(g) = sum {
+                self.a.register::<D>(param.id, g);
+            }
+        }
+    }
+    let mut add = Add { a, b };
+    model.visit(&mut add);
+    add.a
+}
+
+/// One data-parallel optimisation step (`docs/training.md`, data parallelism): the global
+/// batch `chunks` is cut into `devices.len() x grad_accum` contiguous parts; replica `r` (a copy
+/// of `model` forked onto `devices[r]`, in its own thread when there are several) runs parts
+/// `r K .. (r+1) K` one after the other, each in train mode with its own BatchNorm batch
+/// statistics. Each part's loss is weighted by its share of the chunks, so the summed
+/// gradients are those of the batch's mean loss. The gradients are moved to the main device and
+/// added in replica order; one optimiser step follows (after optional clipping), and the
+/// running statistics become the mean of the replicas' (Burn's `RunningState` rule).
+pub fn parallel_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig, chunks: &[&TrainChunk], lr: f64, clip: Option<f64>, plan: &StepPlan<'_>) -> Result<(Ggpt, StepLoss)> {
+    let replicas = plan.devices.len();
+    let k = plan.grad_accum.max(1);
+    if replicas == 0 {
+        return Err(TrainError::Invalid("no training device".into()));
+    }
+    if chunks.len() < replicas * k {
+        return Err(TrainError::Invalid(format!(
+            "batch of {} chunks cannot feed {replicas} replica(s) x {k} micro-batch(es): raise --batch-size to at least {}",
+            chunks.len(),
+            replicas * k
+        )));
+    }
+    if replicas > 1 && plan.drop_path_seed.is_none() {
+        return Err(TrainError::Invalid("several replicas need a drop-path seed (reproducible masks per thread)".into()));
+    }
+    let main = plan.devices[0].clone();
+    let parts = split_batch(chunks, replicas * k);
+    // Replicas are independent copies (`valid` gives fresh running-statistics cells) with the
+    // main model's training flags (a test may switch BatchNorm to eval mode).
+    let mut copies: Vec<Ggpt> = plan.devices.iter().map(|d| model.valid().fork(d).train()).collect();
+    let flags: Vec<Param<burn::module::Flag>> = model.named_batch_norms().into_iter().map(|(_, bn)| bn.training.clone()).collect();
+    for copy in &mut copies {
+        for (bn, flag) in copy.batch_norms_mut().into_iter().zip(&flags) {
+            bn.training = flag.clone();
+        }
+    }
+    let total = chunks.len();
+    let results: Vec<Result<ReplicaResult>> = if replicas == 1 {
+        let copy = copies.pop().ok_or_else(|| TrainError::Invalid("no replica".into()))?;
+        vec![run_replica(copy, cfg, &parts, 0, total, plan, &main)]
+    } else {
+        std::thread::scope(|scope| {
+            let handles: Vec<_> = copies
+                .into_iter()
+                .enumerate()
+                .map(|(r, copy)| {
+                    let my_parts = &parts[r * k..(r + 1) * k];
+                    let main = main.clone();
+                    scope.spawn(move || run_replica(copy, cfg, my_parts, r * k, total, plan, &main))
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap_or_else(|_| Err(TrainError::Invalid("a replica thread panicked".into())))).collect()
+        })
+    };
+    let mut grads: Option<GradientsParams> = None;
+    let (mut loss_sum, mut tokens) = ([0.0f64; 3], 0usize);
+    let mut running: Vec<Vec<(Tensor<1>, Tensor<1>)>> = Vec::new();
+    for r in results {
+        let r = r?;
+        for (s, v) in loss_sum.iter_mut().zip(r.loss) {
+            *s += v;
+        }
+        tokens += r.tokens;
+        running.push(r.running);
+        grads = Some(match grads {
+            None => r.grads,
+            Some(a) => add_gradients(&model, a, r.grads),
+        });
+    }
+    let mut grads = grads.ok_or_else(|| TrainError::Invalid("no gradients".into()))?;
     let grad_norm = clip_global_norm(&model, &mut grads, clip)?;
-    let model = optim.step(lr, model, grads);
-    Ok((model, StepLoss { total: total as f64, conf: conf as f64, id: id as f64, grad_norm, tokens: batch.num_tokens }))
+    let mut model = optim.step(lr, model, grads);
+    // running statistics: the mean over replicas, in replica order
+    let n = running.len() as f64;
+    for (i, bn) in model.batch_norms_mut().into_iter().enumerate() {
+        let (mut mean, mut var) = (None::<Tensor<1>>, None::<Tensor<1>>);
+        for rep in &running {
+            let (m, v) = rep[i].clone();
+            mean = Some(match mean { None => m, Some(a) => a + m });
+            var = Some(match var { None => v, Some(a) => a + v });
+        }
+        if let (Some(m), Some(v)) = (mean, var) {
+            let dev = bn.running_mean.value().device();
+            bn.running_mean = burn::module::RunningState::new(m.div_scalar(n).to_device(&dev));
+            bn.running_var = burn::module::RunningState::new(v.div_scalar(n).to_device(&dev));
+        }
+    }
+    Ok((model, StepLoss { total: loss_sum[0], conf: loss_sum[1], id: loss_sum[2], grad_norm, tokens }))
 }
 
 /// Chunk indices grouped by `TrainChunk::scene` (index = scene).
@@ -409,8 +598,11 @@ pub struct RunContext<'a> {
     pub out: &'a Path,
     /// Chunk set.
     pub data: &'a ChunkSet,
-    /// Autodiff training device.
+    /// Autodiff training device (the main device).
     pub device: Device,
+    /// Autodiff devices of the data-parallel replicas, main device first (empty: one replica
+    /// on `device`).
+    pub replicas: Vec<Device>,
     /// Initial model (fresh, fine-tuning, or resumed), training mode on `device`.
     pub model: Ggpt,
     /// Optimizer (fresh or resumed).
@@ -552,7 +744,9 @@ pub fn run(o: &TrainOptions, ctx: RunContext<'_>) -> Result<RunResult> {
         ctx.device.seed(step_seed(o.seed, step, 2));
         let lr = learning_rate(o, step);
         let ts = Instant::now();
-        let (m, sl) = train_step(model, &mut optim, &o.model, &chunks, lr, o.clip_grad_norm, &ctx.device)?;
+        let devices = if ctx.replicas.is_empty() { std::slice::from_ref(&ctx.device) } else { &ctx.replicas[..] };
+        let plan = StepPlan { devices, grad_accum: o.grad_accum.max(1), drop_path_seed: Some(step_seed(o.seed, step, 4)) };
+        let (m, sl) = parallel_step(model, &mut optim, &o.model, &chunks, lr, o.clip_grad_norm, &plan)?;
         model = m;
         let dt = ts.elapsed().as_secs_f64().max(1e-9);
         step += 1;
@@ -650,6 +844,8 @@ mod tests {
             val_chunks: 4,
             val_max_tokens: 100_000,
             keep_checkpoints: 10,
+            grad_accum: 1,
+            devices: Vec::new(),
         }
     }
 
@@ -673,6 +869,12 @@ mod tests {
     }
 
     fn train(o: &TrainOptions, out: &Path, data: &ChunkSet, model: Ggpt, optim: ModuleOptimizer, start: u64, stop_after: Option<u64>, losses: &mut Vec<(u64, f64)>) -> RunResult {
+        train_on(Vec::new(), o, out, data, model, optim, start, stop_after, losses)
+    }
+
+    /// [`train`] with data-parallel `replicas` (empty: one device).
+    #[allow(clippy::too_many_arguments)]
+    fn train_on(replicas: Vec<Device>, o: &TrainOptions, out: &Path, data: &ChunkSet, model: Ggpt, optim: ModuleOptimizer, start: u64, stop_after: Option<u64>, losses: &mut Vec<(u64, f64)>) -> RunResult {
         let stop = Arc::new(AtomicBool::new(false));
         let flag = stop.clone();
         let mut on_step = |l: &MetricsLine| {
@@ -682,7 +884,110 @@ mod tests {
             }
         };
         let device = cpu().autodiff();
-        run(o, RunContext { out, data, device, model, optim, start_step: start, stop, on_step: &mut on_step }).unwrap()
+        run(o, RunContext { out, data, device, replicas, model, optim, start_step: start, stop, on_step: &mut on_step }).unwrap()
+    }
+
+    fn rel_to_max(a: &[f32], b: &[f32]) -> f32 {
+        assert_eq!(a.len(), b.len());
+        let max = a.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-30);
+        a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max) / max
+    }
+
+    fn toy_batch(n: usize) -> Vec<TrainChunk> {
+        (0..n).map(|i| toy_chunk(i % 3, 40 + 7 * i, i as u32 + 1)).collect()
+    }
+
+    /// `--devices cpu,cpu` on a batch of 2B equals one device with `--grad-accum 2`: same parts,
+    /// each normalised with its own BatchNorm statistics, same updated weights and statistics.
+    #[test]
+    fn data_parallel_step_equals_gradient_accumulation() {
+        let _rng = rng_lock();
+        let o = options(1);
+        let ad = cpu().autodiff();
+        let batch = toy_batch(4);
+        let chunks: Vec<&TrainChunk> = batch.iter().collect();
+        let two = [ad.clone(), ad.clone()];
+        let step = |devices: &[Device], k: usize| {
+            let plan = StepPlan { devices, grad_accum: k, drop_path_seed: Some(99) };
+            let mut optim = adam();
+            let (m, l) = parallel_step(fresh(&o, &ad), &mut optim, &o.model, &chunks, 1e-3, None, &plan).unwrap();
+            // trainable parameters only: the running statistics follow different rules (mean
+            // over replicas vs sequential updates within one)
+            let params: Vec<f32> = crate::grads::named_parameters(&m.valid()).unwrap().into_iter().flat_map(|t| t.values).collect();
+            (params, l)
+        };
+        let (w_dp, l_dp) = step(&two, 1);
+        let (w_acc, l_acc) = step(std::slice::from_ref(&ad), 2);
+        let d = rel_to_max(&w_acc, &w_dp);
+        assert!(d <= 1e-6, "data parallel vs accumulation: {d:e}");
+        assert!((l_dp.total - l_acc.total).abs() <= 1e-6 * l_acc.total.abs(), "{} vs {}", l_dp.total, l_acc.total);
+        // and it is not the one-forward step (BatchNorm statistics of the whole batch differ)
+        let (w_one, _) = step(std::slice::from_ref(&ad), 1);
+        assert!(rel_to_max(&w_one, &w_acc) > 0.0);
+        // too small a batch is an error, not a silent empty replica
+        let mut optim = adam();
+        let plan = StepPlan { devices: &two, grad_accum: 3, drop_path_seed: Some(1) };
+        let e = parallel_step(fresh(&o, &ad), &mut optim, &o.model, &chunks, 1e-3, None, &plan).err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(e.contains("batch-size"), "{e}");
+    }
+
+    /// Without BatchNorm effects (eval-mode BatchNorm, drop path 0) two replicas give the
+    /// gradients of one device on the whole batch (a plain SGD step with lr 1 exposes them).
+    #[test]
+    fn data_parallel_gradients_equal_the_whole_batch_without_batch_norm_effects() {
+        let _rng = rng_lock();
+        let mut o = options(1);
+        o.model.drop_path = 0.0;
+        let ad = cpu().autodiff();
+        let batch = toy_batch(4);
+        let chunks: Vec<&TrainChunk> = batch.iter().collect();
+        let model = || {
+            let mut m = fresh(&o, &ad);
+            // test hook: BatchNorm in eval mode (running statistics) while the rest trains
+            for bn in m.batch_norms_mut() {
+                bn.training = Param::from_bool(false);
+            }
+            m
+        };
+        let sgd_step = |devices: &[Device]| {
+            let plan = StepPlan { devices, grad_accum: 1, drop_path_seed: Some(5) };
+            let mut optim = burn::optim::SgdConfig::new().init();
+            let (m, _) = parallel_step(model(), &mut optim, &o.model, &chunks, 1.0, None, &plan).unwrap();
+            weights(&m)
+        };
+        let w0 = weights(&model());
+        let grad = |w: Vec<f32>| w0.iter().zip(&w).map(|(a, b)| a - b).collect::<Vec<f32>>();
+        let g_one = grad(sgd_step(std::slice::from_ref(&ad)));
+        let g_two = grad(sgd_step(&[ad.clone(), ad.clone()]));
+        assert!(g_one.iter().any(|g| *g != 0.0));
+        let d = rel_to_max(&g_one, &g_two);
+        assert!(d <= 1e-5, "two replicas vs one device on the whole batch: {d:e}");
+    }
+
+    /// An interrupted and resumed two-replica run is bit-identical to an uninterrupted one.
+    #[test]
+    fn interrupted_and_resumed_two_replica_run_equals_uninterrupted_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = toy_set(&dir.path().join("set"));
+        let o = TrainOptions { devices: vec!["ndarray".into(), "ndarray".into()], batch_size: 2, ..options(4) };
+        let ad = cpu().autodiff();
+        let two = || vec![ad.clone(), ad.clone()];
+        let init = || {
+            let _rng = rng_lock();
+            fresh(&o, &ad)
+        };
+        let mut la = Vec::new();
+        let a = train_on(two(), &o, &dir.path().join("a"), &data, init(), adam(), 0, None, &mut la);
+        let out_b = dir.path().join("b");
+        let mut lb = Vec::new();
+        let b1 = train_on(two(), &o, &out_b, &data, init(), adam(), 0, Some(2), &mut lb);
+        assert!(b1.interrupted);
+        let (model, optim, state) = load_checkpoint(&checkpoint_dir(&out_b, 2), &ad).unwrap();
+        assert_eq!(state.options.devices, o.devices);
+        let b2 = train_on(two(), &o, &out_b, &data, model, optim, state.step, None, &mut lb);
+        assert_eq!(la, lb, "per-step losses");
+        let (wa, wb) = (weights(&a.model), weights(&b2.model));
+        assert_eq!(wa, wb, "weights and BatchNorm statistics of the resumed run");
     }
 
     /// A run stopped after step 3 (the Ctrl-C path: checkpoint at exit) and resumed from its

@@ -186,12 +186,48 @@ fn truncated_shard_stops_training_naming_the_shard() {
     assert!(!dir.path().join("run/checkpoints").exists(), "no checkpoint from corrupt data");
 }
 
+/// `--devices cpu,cpu --grad-accum 2` trains, records the replicas and the BatchNorm batching
+/// in `config.json` and the checkpoint, and a batch smaller than replicas x micro-batches is a
+/// clear error.
+#[test]
+fn two_replicas_with_gradient_accumulation_train_and_are_recorded() {
+    let dir = tempfile::tempdir().unwrap();
+    let set_dir = prepare_small_set(dir.path(), 2);
+    let run = dir.path().join("run");
+    run_ok(
+        bin()
+            .args(["train", "--data"])
+            .arg(&set_dir)
+            .arg("--out")
+            .arg(&run)
+            .args(["--config", "tiny", "--steps", "2", "--batch-size", "4", "--devices", "cpu,cpu", "--grad-accum", "2", "--val-every", "0"]),
+    );
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("config.json")).unwrap()).unwrap();
+    assert_eq!(cfg["replicas"], serde_json::json!(["cpu", "cpu"]));
+    assert_eq!(cfg["grad_accum"], 2);
+    assert!(cfg["batchnorm"].as_str().unwrap().contains("2 replica(s) x 2 micro-batch(es)"), "{}", cfg["batchnorm"]);
+    assert_eq!(train_losses(&run).len(), 2);
+    let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("checkpoints/step-00000002/state.json")).unwrap()).unwrap();
+    assert_eq!(state["options"]["devices"], serde_json::json!(["cpu", "cpu"]));
+    let out = bin()
+        .args(["train", "--data"])
+        .arg(&set_dir)
+        .arg("--out")
+        .arg(dir.path().join("run2"))
+        .args(["--config", "tiny", "--steps", "1", "--batch-size", "2", "--devices", "cpu,cpu", "--grad-accum", "2"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--batch-size 2 is smaller than 2 replica(s) x --grad-accum 2"), "{err}");
+}
+
 /// `--help` documents every flag of `train` (each long flag has a description).
 #[test]
 fn help_documents_the_flags() {
     let out = run_ok(bin().args(["train", "--help"]));
     let text = String::from_utf8_lossy(&out.stdout);
-    for flag in ["--data", "--out", "--config", "--steps", "--batch-size", "--lr", "--lr-schedule", "--clip-grad-norm", "--seed", "--save-every", "--resume", "--init-from", "--devices", "--bn-momentum", "--device"] {
+    for flag in ["--data", "--out", "--config", "--steps", "--batch-size", "--lr", "--lr-schedule", "--clip-grad-norm", "--seed", "--save-every", "--resume", "--init-from", "--devices", "--grad-accum", "--bn-momentum", "--device"] {
         assert!(text.contains(flag), "{flag} missing from train --help");
     }
 }

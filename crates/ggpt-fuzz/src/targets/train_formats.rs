@@ -106,6 +106,8 @@ fn options() -> TrainOptions {
         val_chunks: 1,
         val_max_tokens: 10_000,
         keep_checkpoints: 1,
+        grad_accum: 1,
+        devices: Vec::new(),
     }
 }
 

@@ -17,7 +17,7 @@ use ggpt_model::bench::{peak_rss_mib, pixels_for_tokens, reset_peak_rss, surface
 use burn::module::Module;
 use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_train::chunkset::TrainChunk;
-use ggpt_train::trainer::{adam, train_step};
+use ggpt_train::trainer::{StepPlan, adam, parallel_step};
 
 /// Benchmark of GGPT training steps.
 #[derive(Parser, Debug)]
@@ -38,6 +38,13 @@ struct Args {
     /// Device: `cpu`, `ndarray`, `flex`, `wgpu`.
     #[arg(long, default_value = "cpu")]
     device: String,
+    /// Data-parallel replicas, one per listed device (e.g. `cpu,cpu`), instead of --device:
+    /// the batch is split across them as `ggpt-train train --devices` does.
+    #[arg(long, value_delimiter = ',')]
+    devices: Option<Vec<String>>,
+    /// Micro-batches per replica (`ggpt-train train --grad-accum`).
+    #[arg(long, default_value_t = 1)]
+    grad_accum: usize,
     /// CPU threads (0: all cores).
     #[arg(long, default_value_t = 0)]
     threads: usize,
@@ -72,8 +79,14 @@ fn main() -> Result<()> {
         unsafe { std::env::set_var("MATMUL_NUM_THREADS", args.threads.to_string()) };
         ggpt_model::device::init_cpu_threads(args.threads)?;
     }
-    let device = ggpt_model::device::device_from_name(&args.device)?;
-    let ad = device.clone().autodiff();
+    let names = args.devices.clone().unwrap_or_else(|| vec![args.device.clone()]);
+    if names.is_empty() || args.grad_accum == 0 {
+        bail!("--devices needs at least one device and --grad-accum at least 1");
+    }
+    let replicas: Vec<burn::tensor::Device> = names.iter().map(|n| ggpt_model::device::device_from_name(n).map(|d| d.autodiff())).collect::<std::result::Result<_, _>>()?;
+    let device = replicas[0].clone().without_autodiff();
+    let ad = replicas[0].clone();
+    let device_label = if names.len() > 1 || args.grad_accum > 1 { format!("{} x{}", names.join(","), args.grad_accum) } else { names[0].clone() };
     println!("| config | parameters | tokens / chunk | batch | device | threads | s / step | chunks / s | tokens / s | peak RSS MiB |");
     println!("|---|---|---|---|---|---|---|---|---|---|");
     for name in &args.config {
@@ -91,7 +104,8 @@ fn main() -> Result<()> {
                 let mut secs = Vec::with_capacity(args.steps);
                 for s in 0..=args.steps {
                     let t = Instant::now();
-                    let (m, loss) = train_step(model, &mut optim, &cfg, &refs, 1e-4, None, &ad).with_context(|| format!("{name}: step {s}"))?;
+                    let plan = StepPlan { devices: &replicas, grad_accum: args.grad_accum, drop_path_seed: Some(s as u64) };
+                    let (m, loss) = parallel_step(model, &mut optim, &cfg, &refs, 1e-4, None, &plan).with_context(|| format!("{name}: step {s}"))?;
                     model = m;
                     if s > 0 {
                         secs.push(t.elapsed().as_secs_f64());
@@ -102,7 +116,7 @@ fn main() -> Result<()> {
                 println!(
                     "| {name} | {params} | {} | {batch} | {} | {} | {mean:.2} | {:.2} | {:.0} | {:.0} |",
                     n_tokens / batch,
-                    args.device,
+                    device_label,
                     if args.threads == 0 { "all".to_string() } else { args.threads.to_string() },
                     batch as f64 / mean,
                     n_tokens as f64 / mean,
