@@ -6,17 +6,31 @@ use crate::error::{ModelError, Result};
 
 /// Device for `name`: `ndarray` (reference CPU backend), `flex` (fast pure-Rust CPU backend),
 /// `cpu` (the fastest CPU backend compiled in: flex, else ndarray), `wgpu` (default adapter;
-/// lavapipe on machines without a GPU).
+/// lavapipe on machines without a GPU), `wgpu:N` (the N-th discrete GPU), and with the `cuda`
+/// feature `cuda` / `cuda:N` (Burn's CUDA backend, GPU N).
 #[allow(deprecated)]
 pub fn device_from_name(name: &str) -> Result<Device> {
-    match default_device_env_name(name) {
+    let (base, index) = split_index(name)?;
+    match (default_device_env_name(base), index) {
         #[cfg(feature = "ndarray")]
-        Some("ndarray") => Ok(Device::ndarray()),
+        (Some("ndarray"), None) => Ok(Device::ndarray()),
         #[cfg(feature = "flex")]
-        Some("flex") => Ok(Device::flex()),
+        (Some("flex"), None) => Ok(Device::flex()),
         #[cfg(feature = "wgpu")]
-        Some("wgpu") => Ok(Device::wgpu(DeviceKind::DefaultDevice)),
+        (Some("wgpu"), None) => Ok(Device::wgpu(DeviceKind::DefaultDevice)),
+        #[cfg(feature = "wgpu")]
+        (Some("wgpu"), Some(i)) => Ok(Device::wgpu(DeviceKind::DiscreteGpu(i))),
+        #[cfg(feature = "cuda")]
+        (Some("cuda"), i) => Ok(Device::cuda(i.unwrap_or(0))),
         _ => Err(ModelError::Device(name.to_string())),
+    }
+}
+
+/// `wgpu:1` -> (`wgpu`, Some(1)); `cpu` -> (`cpu`, None).
+fn split_index(name: &str) -> Result<(&str, Option<usize>)> {
+    match name.split_once(':') {
+        None => Ok((name, None)),
+        Some((base, i)) => i.parse().map(|i| (base, Some(i))).map_err(|_| ModelError::Device(name.to_string())),
     }
 }
 
@@ -26,6 +40,7 @@ pub fn device_from_name(name: &str) -> Result<Device> {
 /// on (`ModuleOptimizer::load_record`: the optimizer state of a resumed run), and with the `wgpu`
 /// feature compiled in that default is a wgpu adapter: a CPU run would probe Vulkan.
 pub fn default_device_env_name(name: &str) -> Option<&'static str> {
+    let name = name.split_once(':').map_or(name, |(base, _)| base);
     match name {
         #[cfg(feature = "ndarray")]
         "ndarray" => Some("ndarray"),
@@ -35,6 +50,8 @@ pub fn default_device_env_name(name: &str) -> Option<&'static str> {
         "cpu" => Some("ndarray"),
         #[cfg(feature = "wgpu")]
         "wgpu" => Some("wgpu"),
+        #[cfg(feature = "cuda")]
+        "cuda" => Some("cuda"),
         _ => None,
     }
 }
@@ -83,3 +100,18 @@ pub fn cpu_threads() -> usize {
 /// Silences an unused-import warning when wgpu is off.
 #[allow(dead_code)]
 fn _kind(_: DeviceKind) {}
+
+#[cfg(test)]
+mod index_tests {
+    use super::*;
+
+    #[test]
+    fn device_names_take_an_optional_index() {
+        assert_eq!(split_index("wgpu:1").unwrap(), ("wgpu", Some(1)));
+        assert_eq!(split_index("cpu").unwrap(), ("cpu", None));
+        assert!(split_index("wgpu:x").is_err());
+        assert_eq!(default_device_env_name("wgpu:3"), default_device_env_name("wgpu"));
+        assert!(device_from_name("ndarray:1").is_err(), "CPU backends take no index");
+        assert!(device_from_name("tpu").is_err());
+    }
+}
