@@ -292,6 +292,13 @@ impl GgptConfig {
         if !(0.0..1.0).contains(&self.drop_path) {
             return Err(format!("drop_path {} outside [0, 1)", self.drop_path));
         }
+        // Burn's BatchNorm / LayerNorm constructors panic on these; here they are errors.
+        if !(self.bn_eps.is_finite() && self.bn_eps > 0.0) || !(self.ln_eps.is_finite() && self.ln_eps > 0.0) {
+            return Err(format!("bn_eps {} / ln_eps {}: must be finite and > 0", self.bn_eps, self.ln_eps));
+        }
+        if !(self.bn_momentum.is_finite() && (0.0..=1.0).contains(&self.bn_momentum)) {
+            return Err(format!("bn_momentum {} outside [0, 1]", self.bn_momentum));
+        }
         // Sanity bounds, far above any published configuration, so that a corrupt or edited
         // configuration is an error here and not a multi-terabyte allocation in `Ggpt::new`.
         let channels = self.enc_channels.iter().chain(&self.dec_channels);
