@@ -57,7 +57,8 @@ impl WindowAttention {
     /// [`Self::forward`], timing its parts under `{stage}.attn.{qkv,core,proj}` when
     /// [`crate::profile`] is on.
     ///
-    /// On a CPU device without autodiff (inference) the core is the host kernel of
+    /// On a CPU device, when `x` is not part of an autodiff graph (inference, and the
+    /// graph-free forward of [`crate::recompute`]), the core is the host kernel of
     /// [`crate::host_attention`] (GEMM blocks + vectorised softmax, no `[W, H, L, L]` score
     /// tensor); otherwise the explicit `softmax(q k^T s) v` that autodiff differentiates.
     pub fn forward_profiled(&self, x: Tensor<2>, index: &AttnIndex, stage: &str) -> Tensor<2> {
@@ -66,7 +67,7 @@ impl WindowAttention {
         let d = c / h;
         let scale = (d as f64).powf(-0.5);
         let device = x.device();
-        let host = !device.is_autodiff() && is_cpu_device(&device);
+        let host = is_cpu_device(&device) && !x.is_tracked() && !self.qkv.weight.val().is_tracked();
         let mut outs = Vec::new();
         for group in &index.groups {
             let l = group.len;

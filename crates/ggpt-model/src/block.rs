@@ -90,18 +90,38 @@ impl Block {
     }
 
     /// `x, x_conv [N, C] -> [N, C]`; records `{name}.{cpe_conv_out,cpe_out,attn_out,mlp_out,out}`.
+    /// The composition of [`Self::cpe_part`], [`Self::attn_part`] and [`Self::mlp_part`] (the
+    /// recomputation segments of `crate::recompute`).
     pub fn forward(&self, x: Tensor<2>, x_conv: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> Tensor<2> {
-        // Profile key: the stage (`enc0`, `dec3`, ...).
-        let stage = name.split('.').next().unwrap_or(name);
+        let x1 = self.cpe_part(x, x_conv, level, rec, name);
+        let x2 = self.attn_part(x1, level, rec, name);
+        self.mlp_part(x2, rec, name)
+    }
+
+    /// `x1 = x + CPE(x_conv)`: `x, x_conv [N, C] -> [N, C]`; records `{name}.cpe_conv_out`,
+    /// `{name}.cpe_out`.
+    pub fn cpe_part(&self, x: Tensor<2>, x_conv: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> Tensor<2> {
+        let stage = stage_of(name);
         let conv = profile::scope(|| format!("{stage}.conv"), || self.cpe.conv.forward(x_conv, &level.conv));
         rec.record(|| format!("{name}.cpe_conv_out"), &conv);
         let cpe = profile::scope(|| format!("{stage}.cpe_linear_ln"), || self.cpe.norm.forward(self.cpe.linear.forward(conv)));
         rec.record(|| format!("{name}.cpe_out"), &cpe);
-        let x1 = x + cpe;
+        x + cpe
+    }
+
+    /// `x2 = x1 + DropPath(Attn(LN1(x1)))`: `x1 [N, C] -> [N, C]`; records `{name}.attn_out`.
+    pub fn attn_part(&self, x1: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> Tensor<2> {
+        let stage = stage_of(name);
         let normed = profile::scope(|| format!("{stage}.ln1"), || self.norm1.forward(x1.clone()));
         let attn = self.attn.forward_profiled(normed, &level.attn[self.order_row], stage);
         rec.record(|| format!("{name}.attn_out"), &attn);
-        let x2 = x1 + self.drop_path.forward(attn);
+        x1 + self.drop_path.forward(attn)
+    }
+
+    /// `x3 = x2 + DropPath(MLP(LN2(x2)))`: `x2 [N, C] -> [N, C]`; records `{name}.mlp_out`,
+    /// `{name}.out`.
+    pub fn mlp_part(&self, x2: Tensor<2>, rec: &mut Recorder, name: &str) -> Tensor<2> {
+        let stage = stage_of(name);
         let hidden = self.mlp.fc1.weight.dims()[1];
         let mlp = profile::scope(
             || format!("{stage}.ln2_mlp"),
@@ -112,4 +132,9 @@ impl Block {
         rec.record(|| format!("{name}.out"), &x3);
         x3
     }
+}
+
+/// Profile key of a block name: the stage (`enc0`, `dec3`, ...).
+fn stage_of(name: &str) -> &str {
+    name.split('.').next().unwrap_or(name)
 }

@@ -19,6 +19,29 @@ pub fn seed_drop_path(seed: Option<u64>) {
     MASK_RNG.with(|r| *r.borrow_mut() = seed.map(rand_pcg::Pcg64::seed_from_u64));
 }
 
+/// The state of this thread's mask RNG (`None`: unseeded, masks come from the device RNG), so
+/// that a recomputed segment draws the same masks as the forward ([`crate::recompute`]).
+#[derive(Debug, Clone)]
+pub struct MaskRngState(Option<rand_pcg::Pcg64>);
+
+/// A copy of this thread's mask RNG state.
+pub fn mask_rng_state() -> MaskRngState {
+    MaskRngState(MASK_RNG.with(|r| r.borrow().clone()))
+}
+
+/// Restores a state taken by [`mask_rng_state`]: the following masks repeat the draws made
+/// after it was taken.
+pub fn restore_mask_rng(state: &MaskRngState) {
+    MASK_RNG.with(|r| *r.borrow_mut() = state.0.clone());
+}
+
+impl MaskRngState {
+    /// Whether masks are drawn on the host (the thread's RNG is seeded).
+    pub fn is_seeded(&self) -> bool {
+        self.0.is_some()
+    }
+}
+
 /// Per row (token), independently per call: keep with probability `1 - p` and scale kept rows
 /// by `1 / (1 - p)`. Identity when `p = 0`, outside training mode (see [`DropPath::forward`]),
 /// or after `Module::valid`.

@@ -28,6 +28,8 @@ pub mod pooling;
 pub mod prepared;
 pub mod profile;
 pub mod recorder;
+pub mod recompute;
+pub mod segments;
 pub mod sparse_conv;
 pub mod unpooling;
 pub mod weights;

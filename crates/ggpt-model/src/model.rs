@@ -7,12 +7,12 @@ use burn::tensor::{Device, Tensor};
 use crate::block::Block;
 use crate::config::{GgptConfig, NUM_DEC_STAGES, NUM_LEVELS, TYPE_EMBED_DIM};
 use crate::error::{ModelError, Result};
-use crate::head::{Head, head_outputs};
+use crate::head::Head;
 use crate::linear_bn::LinearBnGelu;
-use crate::ops::map_row_blocks;
 use crate::pooling::SerializedPooling;
 use crate::prepared::PreparedBatch;
 use crate::recorder::Recorder;
+use crate::segments::Program;
 use crate::unpooling::Unpooling;
 
 /// Encoder stage `s`: pooling from level `s - 1` (absent for `s = 0`) and its blocks.
@@ -162,53 +162,30 @@ impl Ggpt {
         self.forward_recorded(batch, &mut Recorder::disabled())
     }
 
-    /// Forward recording the fixture-named intermediates into `rec` (when enabled).
+    /// Forward recording the fixture-named intermediates into `rec` (when enabled): the
+    /// segments of [`Program`] in order, each slot dropped after its last reader.
     pub fn forward_recorded(&self, batch: &PreparedBatch, rec: &mut Recorder) -> GgptOutput {
-        let [n, _] = batch.feat_no_embed.dims();
-        let types = Tensor::stack::<2>(vec![self.ff_type_embed.val(), self.dlt_type_embed.val()], 0);
-        let type_rows = types.select(0, batch.type_index.clone());
-        let feat = Tensor::cat(vec![type_rows, batch.feat_no_embed.clone()], 1);
-        rec.record(|| "input.feat".into(), &feat);
-        rec.record(|| "input.coord".into(), &batch.coord);
-        let mut x = self.embedding.forward(feat.clone());
-        rec.record(|| "embedding.out".into(), &x);
-        let mut skips = Vec::with_capacity(NUM_LEVELS);
-        for (s, stage) in self.enc.iter().enumerate() {
-            let level = &batch.levels[s];
-            if let (Some(down), Some(prev)) = (&stage.down, s.checked_sub(1).and_then(|p| batch.levels[p].pool.as_ref())) {
-                x = down.forward(x, prev, rec, &format!("enc{s}.down"));
+        let program = Program::of(self);
+        let mut slots: Vec<Option<Tensor<2>>> = vec![None; program.num_slots];
+        let device = batch.coord.device();
+        let take = |slots: &mut Vec<Option<Tensor<2>>>, k: usize, inputs: &[usize]| -> Vec<Tensor<2>> {
+            let args: Vec<Tensor<2>> = inputs.iter().map(|&i| slots[i].clone().unwrap_or_else(|| Tensor::zeros([0, 0], &device))).collect();
+            for &i in inputs {
+                if program.last_use[i] == k {
+                    slots[i] = None;
+                }
             }
-            for (i, block) in stage.blocks.iter().enumerate() {
-                x = block.forward(x.clone(), x, level, rec, &format!("enc{s}.block{i}"));
+            args
+        };
+        for (k, seg) in program.segments.iter().enumerate() {
+            let args = take(&mut slots, k, &seg.inputs);
+            for (o, t) in seg.outputs.iter().zip(self.run_segment(batch, seg.op, &args, rec)) {
+                slots[*o] = Some(t);
             }
-            rec.record(|| format!("enc{s}.out"), &x);
-            skips.push(x.clone());
         }
-        let mut y = x;
-        for s in (0..NUM_DEC_STAGES).rev() {
-            let stage = &self.dec[s];
-            let level = &batch.levels[s];
-            let Some(pool) = level.pool.as_ref() else { continue };
-            let skip = skips[s].clone();
-            let (u, proj_skip) = stage.up.forward(y, skip, pool.cluster.clone(), rec, &format!("dec{s}.up"));
-            let mut x = u;
-            let mut x_conv = proj_skip;
-            for (i, block) in stage.blocks.iter().enumerate() {
-                x = block.forward(x, x_conv, level, rec, &format!("dec{s}.block{i}"));
-                x_conv = x.clone();
-            }
-            rec.record(|| if s == 0 { "backbone.out".into() } else { format!("dec{s}.out") }, &x);
-            y = x;
-        }
-        // Row blocks bound the [N, D_0 + 218] / [N, W] intermediates on large chunks.
-        let [_, d0] = y.dims();
-        let width = (d0 + feat.dims()[1]).max(self.head.fc1.weight.dims()[1]);
-        let both = Tensor::cat(vec![y, feat], 1);
-        let h = map_row_blocks(both, width, |rows| self.head.forward(rows));
-        rec.record(|| "head.pre_activation".into(), &h);
-        let (tokens_xyz, tokens_conf) = head_outputs(h.clone(), batch.coord.clone());
-        debug_assert_eq!(tokens_xyz.dims(), [n, 3]);
-        GgptOutput { tokens_xyz, tokens_conf, pre_activation: h }
+        // `take` returns one tensor per slot of `head_inputs` (two)
+        let head = take(&mut slots, program.segments.len(), &program.head_inputs);
+        self.run_head(batch, head[0].clone(), head[1].clone(), rec)
     }
 }
 

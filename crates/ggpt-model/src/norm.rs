@@ -10,10 +10,31 @@
 //! running update (checked against the official training step, `ggpt_small_train`). Momentum
 //! 0.01 (PyTorch convention) and eps 1e-3 are set explicitly (Burn's defaults are 0.1 / 1e-5).
 
+use std::cell::Cell;
+
 use burn::nn::{BatchNorm, BatchNormConfig, LayerNorm, LayerNormConfig};
 use burn::tensor::{Device, Tensor};
 
 use crate::config::GgptConfig;
+
+thread_local! {
+    /// Whether [`batch_norm_forward`] leaves the running statistics alone on this thread.
+    static FROZEN_RUNNING_STATS: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Runs `f` with the running-statistics update of [`batch_norm_forward`] switched off on the
+/// current thread (batch statistics are still used): a recomputed segment
+/// ([`crate::recompute`]) must not count its batch a second time.
+pub fn without_running_updates<R>(f: impl FnOnce() -> R) -> R {
+    struct Restore(bool);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            FROZEN_RUNNING_STATS.with(|c| c.set(self.0));
+        }
+    }
+    let _restore = Restore(FROZEN_RUNNING_STATS.with(|c| c.replace(true)));
+    f()
+}
 
 /// A BatchNorm over `channels` with eps / momentum from the config.
 pub fn batch_norm(cfg: &GgptConfig, channels: usize, device: &Device) -> BatchNorm {
@@ -37,6 +58,9 @@ pub fn batch_norm_forward(bn: &BatchNorm, x: Tensor<2>) -> Tensor<2> {
     }
     let [n, _] = x.dims();
     let r = burn::tensor::module::batch_norm_train(x, bn.gamma.val(), bn.beta.val(), bn.epsilon);
+    if FROZEN_RUNNING_STATS.with(Cell::get) {
+        return r.output;
+    }
     let device = r.output.device();
     let m = bn.momentum;
     let unbias = if n > 1 { n as f64 / (n - 1) as f64 } else { 1.0 };

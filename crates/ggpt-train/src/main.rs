@@ -18,7 +18,7 @@ use ggpt_scene::driver::RefineOptions;
 use ggpt_train::chunkset::{ChunkSet, ChunkSetWriter, SceneEntry, Split};
 use ggpt_train::evaluate::{SceneEvaluation, evaluate_scene};
 use ggpt_train::prepare::{PrepareParams, SynthSpec, official_scene, prepare_scene, synthetic_scene};
-use ggpt_train::trainer::{self, LrSchedule, MetricsLine, RunContext, TrainOptions};
+use ggpt_train::trainer::{self, LrSchedule, MetricsLine, Recompute, RunContext, TrainOptions};
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Train GGPT on curated chunk sets (synthetic or official per-sequence data).
@@ -227,6 +227,13 @@ struct TrainArgs {
     /// checkpoint's).
     #[arg(long)]
     grad_accum: Option<usize>,
+    /// Gradient computation: `segments` (default) re-runs each block segment in the backward
+    /// and keeps only block-boundary tensors (a few KB per token: the released configuration
+    /// trains 100k-token chunks in ~10 GB); `off` keeps every intermediate (plain autodiff,
+    /// ~1.4 MB per token released). Same gradients up to float rounding (docs/training.md).
+    /// Default `segments` (on resume: the checkpoint's).
+    #[arg(long, value_enum)]
+    recompute: Option<Recompute>,
     /// Resume: a bare `--resume` (or `--resume latest`) takes the newest complete checkpoint in
     /// `--out`; `--resume DIR` that checkpoint directory.
     #[arg(long, num_args = 0..=1, default_missing_value = RESUME_LATEST, value_name = "DIR|latest")]
@@ -501,6 +508,12 @@ fn train(a: &TrainArgs) -> Result<()> {
             tracing::warn!("--grad-accum {k} differs from the checkpoint's {}: the trajectory changes", opts.grad_accum);
             opts.grad_accum = k;
         }
+        if let Some(r) = a.recompute
+            && r != opts.recompute
+        {
+            tracing::info!("--recompute {r:?} differs from the checkpoint's {:?}: gradients change only by float rounding", opts.recompute);
+            opts.recompute = r;
+        }
         tracing::info!("resumed from {} at step {}", dir.display(), st.step);
         (m, o, st.step, opts)
     } else {
@@ -535,6 +548,7 @@ fn train(a: &TrainArgs) -> Result<()> {
             keep_checkpoints: a.keep_checkpoints,
             grad_accum: a.grad_accum.unwrap_or(1),
             devices: if a.devices.is_some() { device_names.clone() } else { Vec::new() },
+            recompute: a.recompute.unwrap_or_default(),
         };
         (m.fork(&ad).train(), trainer::adam(), 0, opts)
     };
@@ -564,7 +578,7 @@ fn train(a: &TrainArgs) -> Result<()> {
         )
     };
     let run_cfg = serde_json::json!({"options": opts, "data": a.data, "device": replica_names[0], "replicas": replica_names,
-        "grad_accum": opts.grad_accum, "init_from": a.init_from,
+        "grad_accum": opts.grad_accum, "recompute": opts.recompute, "init_from": a.init_from,
         "parameters": ggpt_model::weights::num_trainable_params(&model),
         "batchnorm": batchnorm});
     ggpt_scene::export::write_json(&cfg_path, &run_cfg)?;
@@ -864,6 +878,7 @@ fn default_run(out: &Path) -> Result<()> {
         device: "cpu".into(),
         devices: None,
         grad_accum: None,
+        recompute: None,
         resume: None,
         init_from: None,
         export_to: None,

@@ -40,6 +40,19 @@ pub enum LrSchedule {
     Cosine,
 }
 
+/// How a training step obtains its gradients (`docs/training.md`, memory-efficient training).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Recompute {
+    /// Segment recomputation ([`ggpt_model::recompute`]): one forward without a graph that
+    /// keeps only the block-boundary tensors, then each segment re-run under autodiff in
+    /// reverse. A few KB per token plus one segment's graph.
+    #[default]
+    Segments,
+    /// Plain autodiff over the whole forward: every intermediate kept until the backward.
+    Off,
+}
+
 /// Options of a training run (everything recorded in checkpoints and `config.json`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrainOptions {
@@ -76,6 +89,14 @@ pub struct TrainOptions {
     /// replica on the training device). Recorded so that a resume runs the same replicas.
     #[serde(default)]
     pub devices: Vec<String>,
+    /// Gradient computation (`--recompute`); runs recorded before the option existed used plain
+    /// autodiff and resume with it.
+    #[serde(default = "recompute_off")]
+    pub recompute: Recompute,
+}
+
+fn recompute_off() -> Recompute {
+    Recompute::Off
 }
 
 fn one() -> usize {
@@ -233,7 +254,7 @@ pub struct StepLoss {
 /// autodiff device. Drop-path masks come from the device RNG unless the calling thread seeded
 /// its own ([`ggpt_model::drop_path::seed_drop_path`]).
 pub fn train_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig, chunks: &[&TrainChunk], lr: f64, clip: Option<f64>, device: &Device) -> Result<(Ggpt, StepLoss)> {
-    let plan = StepPlan { devices: std::slice::from_ref(device), grad_accum: 1, drop_path_seed: None };
+    let plan = StepPlan { devices: std::slice::from_ref(device), grad_accum: 1, drop_path_seed: None, recompute: Recompute::default() };
     parallel_step(model, optim, cfg, chunks, lr, clip, &plan)
 }
 
@@ -249,6 +270,8 @@ pub struct StepPlan<'a> {
     /// `step_seed(base, p, 3)` on its own thread, so the step does not depend on thread timing.
     /// `None`: the device RNG (one replica only).
     pub drop_path_seed: Option<u64>,
+    /// How each micro-batch's gradients are computed.
+    pub recompute: Recompute,
 }
 
 /// The batch cut into `parts` contiguous parts of near-equal size (earlier parts one larger).
@@ -282,21 +305,30 @@ fn run_replica(replica: Ggpt, cfg: &GgptConfig, parts: &[&[&TrainChunk]], first:
         ggpt_model::drop_path::seed_drop_path(plan.drop_path_seed.map(|s| step_seed(s, (first + j) as u64, 3)));
         let inputs: Vec<ChunkInput> = part.iter().map(|c| c.to_input()).collect();
         let batch = ggpt_model::infer::prepare_chunks(cfg, &inputs, &device)?;
-        let out = replica.forward(&batch);
-        let parts = loss(out.tokens_xyz, out.tokens_conf, &HostTargets::new(part).upload(&device));
-        let vals = ggpt_model::model::read_tensor_f32(&Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0), "loss")?;
-        let v = |i: usize| vals.get(i).copied().unwrap_or(f32::NAN);
-        if !v(0).is_finite() {
-            return Err(TrainError::Invalid(format!("non-finite loss {} (L_conf {}, L_id {})", v(0), v(1), v(2))));
-        }
         // the part's mean loss weighted by its share of the batch: the sum over parts is the
         // batch's mean loss, whatever the split
         let w = part.len() as f64 / total_chunks as f64;
-        for (k, s) in loss_sum.iter_mut().enumerate() {
-            *s += w * f64::from(v(k));
+        let targets = HostTargets::new(part).upload(&device);
+        let objective = |out: ggpt_model::GgptOutput| -> Result<(Tensor<1>, [f32; 3])> {
+            let parts = loss(out.tokens_xyz, out.tokens_conf, &targets);
+            let vals = ggpt_model::model::read_tensor_f32(&Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0), "loss")?;
+            let v = |i: usize| vals.get(i).copied().unwrap_or(f32::NAN);
+            if !v(0).is_finite() {
+                return Err(TrainError::Invalid(format!("non-finite loss {} (L_conf {}, L_id {})", v(0), v(1), v(2))));
+            }
+            Ok((parts.total.mul_scalar(w), [v(0), v(1), v(2)]))
+        };
+        let (g, vals) = match plan.recompute {
+            Recompute::Segments => ggpt_model::recompute::recomputed_gradients(&replica, &batch, objective)?,
+            Recompute::Off => {
+                let (total, vals) = objective(replica.forward(&batch))?;
+                (GradientsParams::from_grads(total.backward(), &replica), vals)
+            }
+        };
+        for (s, v) in loss_sum.iter_mut().zip(vals) {
+            *s += w * f64::from(v);
         }
         tokens += batch.num_tokens;
-        let g = GradientsParams::from_grads(parts.total.mul_scalar(w).backward(), &replica);
         acc = Some(match acc {
             None => g,
             Some(a) => add_gradients(&replica, a, g),
@@ -745,7 +777,7 @@ pub fn run(o: &TrainOptions, ctx: RunContext<'_>) -> Result<RunResult> {
         let lr = learning_rate(o, step);
         let ts = Instant::now();
         let devices = if ctx.replicas.is_empty() { std::slice::from_ref(&ctx.device) } else { &ctx.replicas[..] };
-        let plan = StepPlan { devices, grad_accum: o.grad_accum.max(1), drop_path_seed: Some(step_seed(o.seed, step, 4)) };
+        let plan = StepPlan { devices, grad_accum: o.grad_accum.max(1), drop_path_seed: Some(step_seed(o.seed, step, 4)), recompute: o.recompute };
         let (m, sl) = parallel_step(model, &mut optim, &o.model, &chunks, lr, o.clip_grad_norm, &plan)?;
         model = m;
         let dt = ts.elapsed().as_secs_f64().max(1e-9);
@@ -846,6 +878,7 @@ mod tests {
             keep_checkpoints: 10,
             grad_accum: 1,
             devices: Vec::new(),
+            recompute: Recompute::default(),
         }
     }
 
@@ -908,7 +941,7 @@ mod tests {
         let chunks: Vec<&TrainChunk> = batch.iter().collect();
         let two = [ad.clone(), ad.clone()];
         let step = |devices: &[Device], k: usize| {
-            let plan = StepPlan { devices, grad_accum: k, drop_path_seed: Some(99) };
+            let plan = StepPlan { devices, grad_accum: k, drop_path_seed: Some(99), recompute: Recompute::default() };
             let mut optim = adam();
             let (m, l) = parallel_step(fresh(&o, &ad), &mut optim, &o.model, &chunks, 1e-3, None, &plan).unwrap();
             // trainable parameters only: the running statistics follow different rules (mean
@@ -926,7 +959,7 @@ mod tests {
         assert!(rel_to_max(&w_one, &w_acc) > 0.0);
         // too small a batch is an error, not a silent empty replica
         let mut optim = adam();
-        let plan = StepPlan { devices: &two, grad_accum: 3, drop_path_seed: Some(1) };
+        let plan = StepPlan { devices: &two, grad_accum: 3, drop_path_seed: Some(1), recompute: Recompute::default() };
         let e = parallel_step(fresh(&o, &ad), &mut optim, &o.model, &chunks, 1e-3, None, &plan).err().map(|e| e.to_string()).unwrap_or_default();
         assert!(e.contains("batch-size"), "{e}");
     }
@@ -950,7 +983,7 @@ mod tests {
             m
         };
         let sgd_step = |devices: &[Device]| {
-            let plan = StepPlan { devices, grad_accum: 1, drop_path_seed: Some(5) };
+            let plan = StepPlan { devices, grad_accum: 1, drop_path_seed: Some(5), recompute: Recompute::default() };
             let mut optim = burn::optim::SgdConfig::new().init();
             let (m, _) = parallel_step(model(), &mut optim, &o.model, &chunks, 1.0, None, &plan).unwrap();
             weights(&m)

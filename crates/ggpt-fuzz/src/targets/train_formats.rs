@@ -108,6 +108,7 @@ fn options() -> TrainOptions {
         keep_checkpoints: 1,
         grad_accum: 1,
         devices: Vec::new(),
+        recompute: ggpt_train::trainer::Recompute::default(),
     }
 }
 

@@ -17,7 +17,8 @@ use ggpt_model::bench::{peak_rss_mib, pixels_for_tokens, reset_peak_rss, surface
 use burn::module::Module;
 use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_train::chunkset::TrainChunk;
-use ggpt_train::trainer::{StepPlan, adam, parallel_step};
+use ggpt_train::trainer::{Recompute, StepPlan, adam, parallel_step};
+use clap::ValueEnum;
 
 /// Benchmark of GGPT training steps.
 #[derive(Parser, Debug)]
@@ -45,6 +46,10 @@ struct Args {
     /// Micro-batches per replica (`ggpt-train train --grad-accum`).
     #[arg(long, default_value_t = 1)]
     grad_accum: usize,
+    /// Gradient computation, one row each: `segments` (recomputation) and/or `off` (plain
+    /// autodiff).
+    #[arg(long, value_delimiter = ',', default_value = "segments")]
+    recompute: Vec<String>,
     /// CPU threads (0: all cores).
     #[arg(long, default_value_t = 0)]
     threads: usize,
@@ -87,12 +92,14 @@ fn main() -> Result<()> {
     let device = replicas[0].clone().without_autodiff();
     let ad = replicas[0].clone();
     let device_label = if names.len() > 1 || args.grad_accum > 1 { format!("{} x{}", names.join(","), args.grad_accum) } else { names[0].clone() };
-    println!("| config | parameters | tokens / chunk | batch | device | threads | s / step | chunks / s | tokens / s | peak RSS MiB |");
-    println!("|---|---|---|---|---|---|---|---|---|---|");
+    let modes: Vec<Recompute> = args.recompute.iter().map(|m| Recompute::from_str(m, true).map_err(|e| anyhow::anyhow!("--recompute {m}: {e}"))).collect::<Result<_>>()?;
+    println!("| config | parameters | tokens / chunk | batch | device | threads | recompute | s / step | chunks / s | tokens / s | peak RSS MiB | KB / token above 1 GB |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     for name in &args.config {
         let cfg = GgptConfig::preset(name)?;
         for &tokens in &args.tokens {
             for &batch in &args.batch {
+            for &mode in &modes {
                 let chunks: Vec<TrainChunk> = (0..batch).map(|b| train_chunk(pixels_for_tokens(tokens), 7 + b as u64)).collect();
                 let refs: Vec<&TrainChunk> = chunks.iter().collect();
                 let n_tokens: usize = chunks.iter().map(TrainChunk::num_tokens).sum();
@@ -104,7 +111,7 @@ fn main() -> Result<()> {
                 let mut secs = Vec::with_capacity(args.steps);
                 for s in 0..=args.steps {
                     let t = Instant::now();
-                    let plan = StepPlan { devices: &replicas, grad_accum: args.grad_accum, drop_path_seed: Some(s as u64) };
+                    let plan = StepPlan { devices: &replicas, grad_accum: args.grad_accum, drop_path_seed: Some(s as u64), recompute: mode };
                     let (m, loss) = parallel_step(model, &mut optim, &cfg, &refs, 1e-4, None, &plan).with_context(|| format!("{name}: step {s}"))?;
                     model = m;
                     if s > 0 {
@@ -113,15 +120,18 @@ fn main() -> Result<()> {
                     tracing::debug!("step {s}: loss {:.4}", loss.total);
                 }
                 let mean = secs.iter().sum::<f64>() / secs.len() as f64;
+                let peak = peak_rss_mib();
                 println!(
-                    "| {name} | {params} | {} | {batch} | {} | {} | {mean:.2} | {:.2} | {:.0} | {:.0} |",
+                    "| {name} | {params} | {} | {batch} | {} | {} | {} | {mean:.2} | {:.2} | {:.0} | {peak:.0} | {:.0} |",
                     n_tokens / batch,
                     device_label,
                     if args.threads == 0 { "all".to_string() } else { args.threads.to_string() },
+                    format!("{mode:?}").to_lowercase(),
                     batch as f64 / mean,
                     n_tokens as f64 / mean,
-                    peak_rss_mib()
+                    ((peak - 1024.0) * 1024.0 / n_tokens as f64).max(0.0)
                 );
+            }
             }
         }
     }

@@ -1,0 +1,317 @@
+//! Memory-efficient gradients by segment recomputation (activation checkpointing,
+//! `docs/training.md`).
+//!
+//! Plain autodiff keeps every intermediate of the forward until the backward: ~1.4 MB per token
+//! for the released configuration. Here the forward runs once without a graph, keeping only
+//! the slot tensors of [`Program`] (block inputs, the two residual states inside each block,
+//! skips, `feat`: a few KB per token). Then the backward walks the segments in reverse. Each
+//! segment is re-run under autodiff from its stored inputs, made leaves, and back-propagated
+//! with the surrogate loss `Σ_j <y_j, g_j>`, where `g_j` is the already known gradient of its
+//! output `y_j`. That yields the gradients of its parameters and of its inputs, exactly those of
+//! the whole graph (the chain rule, split at the slots). So the peak holds one segment's graph,
+//! not the network's.
+//!
+//! Two kinds of state must not change when a segment is re-run:
+//! * BatchNorm running statistics are updated by the forward only
+//!   ([`norm::without_running_updates`] during the re-runs); the batch statistics themselves
+//!   are recomputed identically.
+//! * Drop-path masks: the thread's host mask RNG ([`drop_path::seed_drop_path`]) is saved before
+//!   each segment and restored before its re-run, so the same masks are drawn. After the step
+//!   it is left where the forward left it, as after a plain step. An unseeded thread (device
+//!   RNG) is seeded for the step from one draw of the device RNG.
+//!
+//! Cost: one extra forward per step (no graph), against a graph bounded by the largest segment.
+
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::optim::GradientsParams;
+use burn::tensor::{Device, Distribution, Gradients, Tensor};
+
+use crate::drop_path::{self, MaskRngState};
+use crate::model::{Ggpt, GgptOutput, read_tensor_f32};
+use crate::norm;
+use crate::prepared::PreparedBatch;
+use crate::recorder::Recorder;
+use crate::segments::Program;
+
+/// The gradients of `objective(model.forward(batch))` with respect to every parameter of
+/// `model`, computed by segment recomputation (module docs), and what `objective` returned
+/// beside its loss.
+///
+/// `model` must live on an autodiff device in training mode. `objective` receives the
+/// train-mode outputs (tracked) and returns the scalar `[1]` to differentiate plus any value,
+/// e.g. the loss terms read back; an error from it aborts before any backward. BatchNorm
+/// running statistics are updated once, as by a plain forward. The gradients equal those of
+/// `GradientsParams::from_grads(loss.backward(), model)` after a plain forward up to float
+/// summation order.
+pub fn recomputed_gradients<T, E>(
+    model: &Ggpt,
+    batch: &PreparedBatch,
+    objective: impl FnOnce(GgptOutput) -> Result<(Tensor<1>, T), E>,
+) -> Result<(GradientsParams, T), E> {
+    let outer = drop_path::mask_rng_state();
+    let own_seed = !outer.is_seeded() && has_active_drop_path(model);
+    if own_seed {
+        drop_path::seed_drop_path(Some(device_seed(batch)));
+    }
+    let mut after_forward = None;
+    let result = run(model, batch, objective, &mut after_forward);
+    match (own_seed, after_forward) {
+        (false, Some(state)) => drop_path::restore_mask_rng(&state),
+        _ => drop_path::restore_mask_rng(&outer),
+    }
+    result
+}
+
+fn run<T, E>(
+    model: &Ggpt,
+    batch: &PreparedBatch,
+    objective: impl FnOnce(GgptOutput) -> Result<(Tensor<1>, T), E>,
+    after_forward: &mut Option<MaskRngState>,
+) -> Result<(GradientsParams, T), E> {
+    let program = Program::of(model);
+    let device = batch.coord.device().without_autodiff();
+    let mut rec = Recorder::disabled();
+    // 1. Forward without a graph: parameters detached (BatchNorm and drop path still in
+    //    training mode), slot values kept without autodiff.
+    let frozen = model.clone().no_grad();
+    let mut values: Vec<Option<Tensor<2>>> = vec![None; program.num_slots];
+    let mut rng_before = Vec::with_capacity(program.segments.len());
+    for seg in &program.segments {
+        rng_before.push(drop_path::mask_rng_state());
+        let args: Vec<Tensor<2>> = seg.inputs.iter().map(|&i| slot(&values, i, &device).autodiff()).collect();
+        for (&o, t) in seg.outputs.iter().zip(frozen.run_segment(batch, seg.op, &args, &mut rec)) {
+            values[o] = Some(t.without_autodiff());
+        }
+    }
+    drop(frozen);
+    *after_forward = Some(drop_path::mask_rng_state());
+
+    // 2. The head and the objective under autodiff, then every segment in reverse.
+    let mut acc = GradientsParams::new();
+    let mut slot_grads: Vec<Option<Tensor<2>>> = vec![None; program.num_slots];
+    let [y_slot, feat_slot] = program.head_inputs;
+    let (y, feat) = (leaf(&values, y_slot, &device), leaf(&values, feat_slot, &device));
+    let out = model.run_head(batch, y.clone(), feat.clone(), &mut rec);
+    let (loss, extra) = objective(out)?;
+    let mut grads = loss.backward();
+    add_slot_grad(&mut slot_grads, y_slot, y.grad_remove(&mut grads));
+    add_slot_grad(&mut slot_grads, feat_slot, feat.grad_remove(&mut grads));
+    collect_param_grads(model, &mut grads, &mut acc);
+    drop(grads);
+
+    for (k, seg) in program.segments.iter().enumerate().rev() {
+        let out_grads: Vec<Option<Tensor<2>>> = seg.outputs.iter().map(|&o| slot_grads[o].take()).collect();
+        for &o in &seg.outputs {
+            // every reader of the outputs came later and has been processed
+            values[o] = None;
+        }
+        if out_grads.iter().all(Option::is_none) {
+            continue;
+        }
+        // one leaf per distinct input slot (`[x, x]` shares one)
+        let mut leaves: Vec<(usize, Tensor<2>)> = Vec::with_capacity(seg.inputs.len());
+        for &i in &seg.inputs {
+            if !leaves.iter().any(|(j, _)| *j == i) {
+                leaves.push((i, leaf(&values, i, &device)));
+            }
+        }
+        let args: Vec<Tensor<2>> = seg
+            .inputs
+            .iter()
+            .filter_map(|i| leaves.iter().find(|(j, _)| j == i).map(|(_, t)| t.clone()))
+            .collect();
+        drop_path::restore_mask_rng(&rng_before[k]);
+        let outs = norm::without_running_updates(|| model.run_segment(batch, seg.op, &args, &mut rec));
+        drop(args);
+        let surrogate = outs
+            .into_iter()
+            .zip(out_grads)
+            .filter_map(|(y, g)| g.map(|g| (y * g.autodiff()).sum()))
+            .reduce(|a, b| a + b);
+        let Some(surrogate) = surrogate else { continue };
+        let mut grads = surrogate.backward();
+        for (i, t) in &leaves {
+            add_slot_grad(&mut slot_grads, *i, t.grad_remove(&mut grads));
+        }
+        collect_param_grads(model, &mut grads, &mut acc);
+    }
+    Ok((acc, extra))
+}
+
+/// The stored value of slot `i`. [`Program`] has every slot written before it is read, so the
+/// empty fallback is never taken.
+fn slot(values: &[Option<Tensor<2>>], i: usize, device: &Device) -> Tensor<2> {
+    values[i].clone().unwrap_or_else(|| Tensor::zeros([0, 0], device))
+}
+
+/// A fresh autodiff leaf holding the stored value of slot `i`.
+fn leaf(values: &[Option<Tensor<2>>], i: usize, device: &Device) -> Tensor<2> {
+    slot(values, i, device).autodiff().require_grad()
+}
+
+fn add_slot_grad(slot_grads: &mut [Option<Tensor<2>>], i: usize, g: Option<Tensor<2>>) {
+    if let Some(g) = g {
+        slot_grads[i] = Some(match slot_grads[i].take() {
+            Some(prev) => prev + g,
+            None => g,
+        });
+    }
+}
+
+/// Moves the gradient of every parameter of `model` present in `grads` into `acc`, adding it
+/// to what `acc` already holds for that parameter.
+fn collect_param_grads(model: &Ggpt, grads: &mut Gradients, acc: &mut GradientsParams) {
+    struct Collect<'a> {
+        grads: &'a mut Gradients,
+        acc: &'a mut GradientsParams,
+    }
+    impl ModuleVisitor for Collect<'_> {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            if let Some(g) = param.val().grad_remove(self.grads) {
+                let g = match self.acc.remove::<D>(param.id) {
+                    Some(prev) => prev + g,
+                    None => g,
+                };
+                self.acc.register::<D>(param.id, g);
+            }
+        }
+    }
+    model.visit(&mut Collect { grads, acc });
+}
+
+/// Whether some block of `model` would drop paths in this forward.
+fn has_active_drop_path(model: &Ggpt) -> bool {
+    model
+        .enc
+        .iter()
+        .flat_map(|s| &s.blocks)
+        .chain(model.dec.iter().flat_map(|s| &s.blocks))
+        .any(|b| b.drop_path.prob > 0.0 && b.drop_path.training.is_enabled())
+}
+
+/// A mask seed drawn from the device RNG (deterministic under `Device::seed`).
+fn device_seed(batch: &PreparedBatch) -> u64 {
+    let device = batch.coord.device();
+    let draw = Tensor::<1>::random([2], Distribution::Uniform(0.0, 1.0), &device.without_autodiff());
+    let v = read_tensor_f32(&draw, "drop-path seed").unwrap_or_default();
+    let word = |i: usize| (f64::from(v.get(i).copied().unwrap_or(0.0)) * f64::from(u32::MAX)) as u64;
+    (word(0) << 32) | word(1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::GgptConfig;
+    use crate::bench::surface_chunk;
+    use crate::infer::prepare_chunks;
+
+    /// The tests seed and draw from the shared ndarray device RNG: one at a time.
+    fn rng_lock() -> std::sync::MutexGuard<'static, ()> {
+        static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+        LOCK.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn flat(model: &Ggpt, grads: &GradientsParams) -> Vec<(String, Vec<f32>)> {
+        struct Flat<'a> {
+            grads: &'a GradientsParams,
+            out: Vec<(String, Vec<f32>)>,
+        }
+        impl ModuleVisitor for Flat<'_> {
+            fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+                let g = self.grads.get::<D>(param.id).map(|g| g.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default());
+                self.out.push((param.id.to_string(), g.unwrap_or_default()));
+            }
+        }
+        let mut v = Flat { grads, out: Vec::new() };
+        model.visit(&mut v);
+        v.out
+    }
+
+    fn running(model: &Ggpt) -> Vec<f32> {
+        model
+            .named_batch_norms()
+            .into_iter()
+            .flat_map(|(_, bn)| {
+                let m = bn.running_mean.value_sync().into_data().try_to_vec::<f32>().unwrap_or_default();
+                let v = bn.running_var.value_sync().into_data().try_to_vec::<f32>().unwrap_or_default();
+                m.into_iter().chain(v)
+            })
+            .collect()
+    }
+
+    /// An objective touching both outputs, so every parameter gets a gradient.
+    fn objective(out: GgptOutput) -> Result<(Tensor<1>, f32), String> {
+        let l = out.tokens_xyz.powf_scalar(2.0).sum() + out.tokens_conf.log().sum().mul_scalar(0.1);
+        let v = read_tensor_f32(&l, "loss").map_err(|e| e.to_string())?;
+        Ok((l, v[0]))
+    }
+
+    /// The recomputed gradients (and BatchNorm statistics, and the drop-path RNG afterwards)
+    /// are those of plain autodiff, in training mode with drop path on.
+    #[test]
+    fn recomputed_gradients_equal_plain_autodiff() {
+        let _rng = rng_lock();
+        let device = crate::device::device_from_name("ndarray").unwrap().autodiff();
+        let mut cfg = GgptConfig::tiny();
+        cfg.drop_path = 0.3;
+        let host = device.clone().without_autodiff();
+        host.seed(3);
+        let mut base = Ggpt::new(&cfg, &host);
+        // a non-zero last head layer (it starts at zero), so gradients reach the backbone
+        let [w, _] = base.head.fc3.weight.dims();
+        base.head.fc3 = burn::nn::LinearConfig::new(w, 4).init(&host);
+        let base = base.fork(&device).train();
+        // independent copies (own running-statistics cells)
+        let plain = base.valid().fork(&device).train();
+        let segmented = base.valid().fork(&device).train();
+        let chunks = vec![surface_chunk(400, 1), surface_chunk(300, 2)];
+        let batch = prepare_chunks(&cfg, &chunks, &device).unwrap();
+
+        drop_path::seed_drop_path(Some(11));
+        let out = plain.forward(&batch);
+        let (l, want_loss) = objective(out).unwrap();
+        let want = GradientsParams::from_grads(l.backward(), &plain);
+        let want_rng = drop_path::mask_rng_state();
+
+        drop_path::seed_drop_path(Some(11));
+        let (got, got_loss) = recomputed_gradients(&segmented, &batch, objective).unwrap();
+        let got_rng = drop_path::mask_rng_state();
+        drop_path::seed_drop_path(None);
+
+        assert!((want_loss - got_loss).abs() <= 1e-6 * want_loss.abs(), "{want_loss} vs {got_loss}");
+        let (want, got) = (flat(&plain, &want), flat(&segmented, &got));
+        assert_eq!(want.len(), got.len());
+        let abs_max = |v: &[f32]| v.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+        let global = want.iter().map(|(_, w)| abs_max(w)).fold(0.0f32, f32::max);
+        let mut worst = 0.0f32;
+        for ((_, w), (_, g)) in want.iter().zip(&got) {
+            assert_eq!(w.len(), g.len(), "a parameter without a gradient on one side");
+            let diff = w.iter().zip(g).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            // tensors whose exact gradient is 0 hold float noise (biases of a Linear followed
+            // by BatchNorm, the key third of qkv biases): measured against the largest gradient
+            let max = abs_max(w).max(1e-3 * global);
+            worst = worst.max(diff / max);
+        }
+        assert!(global > 0.0);
+        assert!(worst <= 1e-5, "worst gradient difference {worst:e} relative to max");
+        // both sides have gradients for the same parameters (Burn registers none for a few
+        // biases whose gradient is structurally zero); most parameters have one
+        assert!(want.iter().filter(|(_, w)| !w.is_empty()).count() * 5 > want.len() * 4);
+        let (rw, rg) = (running(&plain), running(&segmented));
+        assert!(rw.iter().zip(&rg).all(|(a, b)| (a - b).abs() <= 1e-6), "running statistics differ");
+        assert_ne!(rw, running(&base.valid()), "the running statistics were updated");
+        assert_eq!(format!("{want_rng:?}"), format!("{got_rng:?}"), "the mask RNG ends where a plain forward leaves it");
+    }
+
+    /// An objective error aborts before any backward and leaves the caller's RNG state.
+    #[test]
+    fn objective_errors_are_returned() {
+        let _rng = rng_lock();
+        let device = crate::device::device_from_name("ndarray").unwrap().autodiff();
+        let cfg = GgptConfig::tiny();
+        let model = Ggpt::new(&cfg, &device).train();
+        let batch = prepare_chunks(&cfg, &[surface_chunk(200, 5)], &device).unwrap();
+        let r = recomputed_gradients(&model, &batch, |_| Err::<(Tensor<1>, ()), _>("bad loss"));
+        assert_eq!(r.err(), Some("bad loss"));
+    }
+}
