@@ -18,9 +18,10 @@ use burn::nn::{Linear, LinearConfig};
 use burn::tensor::activation::softmax;
 use burn::tensor::module::attention;
 use burn::tensor::ops::AttentionModuleOptions;
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use crate::host_attention::{WindowShape, window_attention};
+use crate::host_attention_grad::window_attention_backward;
 use crate::ops::{gather_rows, is_cpu_device};
 use crate::prepared::AttnIndex;
 use crate::profile;
@@ -105,6 +106,108 @@ impl WindowAttention {
             _ => Tensor::cat(outs, 0),
         };
         profile::scope(|| format!("{stage}.attn.proj"), || self.proj.forward(gather_rows(all, index.take.clone())))
+    }
+}
+
+/// Host copies of the tables of one [`AttnIndex`], for the training core
+/// ([`WindowAttention::host_core_forward`]).
+#[derive(Debug, Clone)]
+pub struct HostAttnIndex {
+    /// Per window group: the token of every window slot (`[W L]`), `W`, `L`.
+    pub groups: Vec<(Vec<usize>, usize, usize)>,
+    /// `[N]`: for every token, its row in the concatenated window outputs.
+    pub take: Vec<usize>,
+}
+
+impl HostAttnIndex {
+    /// Reads the tables of `index` back; `None` when they cannot be read or are inconsistent
+    /// (a gather entry outside `0..num_tokens`, a take entry outside the window rows).
+    pub fn read(index: &AttnIndex, num_tokens: usize) -> Option<Self> {
+        let ints = |t: &Tensor<1, Int>| -> Option<Vec<usize>> {
+            let v = t.clone().try_into_data().ok()?.convert::<i64>().try_to_vec::<i64>().ok()?;
+            v.into_iter().map(|x| usize::try_from(x).ok()).collect()
+        };
+        let mut groups = Vec::with_capacity(index.groups.len());
+        let mut rows = 0;
+        for g in &index.groups {
+            let gather = ints(&g.gather)?;
+            if gather.len() != g.num_windows * g.len || gather.iter().any(|&t| t >= num_tokens) {
+                return None;
+            }
+            rows += gather.len();
+            groups.push((gather, g.num_windows, g.len));
+        }
+        let take = ints(&index.take)?;
+        (take.len() == num_tokens && take.iter().all(|&r| r < rows)).then_some(Self { groups, take })
+    }
+}
+
+/// What [`WindowAttention::host_core_forward`] keeps for its backward: the gathered
+/// projection rows of every window group.
+#[derive(Debug)]
+pub struct HostCoreSaved {
+    groups: Vec<(Vec<f32>, WindowShape)>,
+}
+
+impl WindowAttention {
+    /// The attention core on the host from the projection of every token:
+    /// `qkv [N, 3C]` row-major (the `qkv` Linear applied to all `N` rows) `-> [N, C]`, the
+    /// same function as the core of [`Self::forward`] (whose `qkv` runs on the gathered rows).
+    pub fn host_core_forward(&self, qkv: &[f32], index: &HostAttnIndex) -> Option<(Vec<f32>, HostCoreSaved)> {
+        let (c3, n) = (self.qkv.weight.dims()[1], index.take.len());
+        let (c, h) = (c3 / 3, self.num_heads);
+        if qkv.len() != n * c3 || h == 0 || c % h != 0 {
+            return None;
+        }
+        let d = c / h;
+        let scale = (d as f64).powf(-0.5) as f32;
+        let mut all = Vec::new();
+        let mut saved = Vec::with_capacity(index.groups.len());
+        for (gather, windows, len) in &index.groups {
+            let mut rows = Vec::with_capacity(gather.len() * c3);
+            for &t in gather {
+                rows.extend_from_slice(&qkv[t * c3..(t + 1) * c3]);
+            }
+            let shape = WindowShape { windows: *windows, len: *len, heads: h, head_dim: d };
+            all.extend(window_attention(&rows, shape, scale)?);
+            saved.push((rows, shape));
+        }
+        let mut out = Vec::with_capacity(n * c);
+        for &r in &index.take {
+            out.extend_from_slice(all.get(r * c..(r + 1) * c)?);
+        }
+        Some((out, HostCoreSaved { groups: saved }))
+    }
+
+    /// Gradient of [`Self::host_core_forward`]: `d_out [N, C]` -> `d_qkv [N, 3C]` (the rows of
+    /// a token that sits in several window slots, padding included, are summed).
+    pub fn host_core_backward(&self, saved: &HostCoreSaved, d_out: &[f32], index: &HostAttnIndex) -> Option<Vec<f32>> {
+        let n = index.take.len();
+        let c3 = self.qkv.weight.dims()[1];
+        let c = c3 / 3;
+        if d_out.len() != n * c {
+            return None;
+        }
+        // the gradient of every window output row (rows no token takes get 0)
+        let total: usize = saved.groups.iter().map(|(rows, _)| rows.len() / 3).sum();
+        let mut d_rows_out = vec![0.0f32; total];
+        for (t, &r) in index.take.iter().enumerate() {
+            d_rows_out.get_mut(r * c..(r + 1) * c)?.copy_from_slice(&d_out[t * c..(t + 1) * c]);
+        }
+        let mut d_qkv = vec![0.0f32; n * c3];
+        let mut offset = 0;
+        for ((rows, shape), (gather, _, _)) in saved.groups.iter().zip(&index.groups) {
+            let scale = (shape.head_dim as f64).powf(-0.5) as f32;
+            let m = rows.len() / 3;
+            let d_rows = window_attention_backward(rows, &d_rows_out[offset..offset + m], *shape, scale)?;
+            offset += m;
+            for (&t, g) in gather.iter().zip(d_rows.chunks_exact(c3)) {
+                for (acc, x) in d_qkv[t * c3..(t + 1) * c3].iter_mut().zip(g) {
+                    *acc += x;
+                }
+            }
+        }
+        Some(d_qkv)
     }
 }
 

@@ -9,9 +9,9 @@
 
 use burn::module::Module;
 use burn::nn::{LayerNorm, Linear, LinearConfig};
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Gradients, Tensor, TensorData};
 
-use crate::attention::WindowAttention;
+use crate::attention::{HostAttnIndex, WindowAttention};
 use crate::config::GgptConfig;
 use crate::drop_path::DropPath;
 use crate::gelu::gelu;
@@ -116,6 +116,51 @@ impl Block {
         let attn = self.attn.forward_profiled(normed, &level.attn[self.order_row], stage);
         rec.record(|| format!("{name}.attn_out"), &attn);
         x1 + self.drop_path.forward(attn)
+    }
+
+    /// Backward of [`Self::attn_part`] with the attention core on the host (CPU training,
+    /// `crate::recompute`): `x1 [N, C]` (the segment input, no graph) and `g_x2 [N, C]` (the
+    /// gradient of its output) -> the gradient of `x1`. The parameter gradients go to
+    /// `collect`, once per partial backward. The graphs hold `LN1`, `qkv [N, 3C]` and `proj`,
+    /// never a score tensor. `None` (nothing collected) when a host readback fails or the
+    /// tables are inconsistent: the caller then differentiates [`Self::attn_part`] itself.
+    ///
+    /// The drop-path mask is drawn once, as by [`Self::attn_part`] (the caller restores the
+    /// mask RNG before).
+    pub fn attn_part_backward(&self, x1: Tensor<2>, g_x2: Tensor<2>, level: &PreparedLevel, collect: &mut dyn FnMut(&mut Gradients)) -> Option<Tensor<2>> {
+        let [n, c] = x1.dims();
+        let device = x1.device();
+        let index = HostAttnIndex::read(&level.attn[self.order_row], n)?;
+        // qkv of every token under autodiff; its values for the host core
+        let xa = x1.clone().autodiff().require_grad();
+        let qkv = self.attn.qkv.forward(self.norm1.forward(xa.clone()));
+        let qkv_host = qkv.clone().try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()?;
+        let (out, saved) = self.attn.host_core_forward(&qkv_host, &index)?;
+        drop(qkv_host);
+        // y = x1 + DropPath(proj(out)): gradients of x1 (residual), proj and out
+        let out = Tensor::<2>::from_data(TensorData::new(out, [n, c]), &device).autodiff().require_grad();
+        let xb = x1.autodiff().require_grad();
+        let y = xb.clone() + self.drop_path.forward(self.attn.proj.forward(out.clone()));
+        let mut grads = (y * g_x2.autodiff()).sum().backward();
+        let g_residual = xb.grad_remove(&mut grads);
+        let g_out = out.grad_remove(&mut grads);
+        let g_out = match g_out {
+            Some(g) => g.try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()?,
+            None => vec![0.0; n * c],
+        };
+        let d_qkv = self.attn.host_core_backward(&saved, &g_out, &index)?;
+        drop(saved);
+        let d_qkv = Tensor::<2>::from_data(TensorData::new(d_qkv, [n, 3 * c]), &device).autodiff();
+        let mut grads_ln = (qkv * d_qkv).sum().backward();
+        let g_ln = xa.grad_remove(&mut grads_ln);
+        // only now, so that a `None` above collected nothing
+        collect(&mut grads);
+        collect(&mut grads_ln);
+        Some(match (g_residual, g_ln) {
+            (Some(a), Some(b)) => a + b,
+            (Some(a), None) | (None, Some(a)) => a,
+            (None, None) => Tensor::zeros([n, c], &device),
+        })
     }
 
     /// `x3 = x2 + DropPath(MLP(LN2(x2)))`: `x2 [N, C] -> [N, C]`; records `{name}.mlp_out`,

@@ -17,7 +17,8 @@
 //! the scores of a block go through GEMMs (the `gemm` crate's runtime-dispatched SIMD kernels)
 //! and a branch-free polynomial `exp` that the compiler vectorises (AVX2 + FMA when the CPU has
 //! them, detected at run time). Work is split over the rayon pool by (window, head, block).
-//! Not differentiable: the autodiff / GPU path keeps the tensor formulation.
+//! Its gradient is [`crate::host_attention_grad`] (CPU training); the GPU path keeps the
+//! tensor formulation.
 
 use rayon::prelude::*;
 
@@ -119,7 +120,7 @@ unsafe fn block(rows: &[f32], out: &SharedOut, scores: &mut [f32], shape: Window
 }
 
 /// Row-wise `exp(x - max)` in place over `s` (`rows × len`), `inv_sum[r] = 1 / Σ exp`.
-fn softmax_rows(s: &mut [f32], len: usize, inv_sum: &mut [f32]) {
+pub(crate) fn softmax_rows(s: &mut [f32], len: usize, inv_sum: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
@@ -207,7 +208,7 @@ pub fn exp_nonpositive(x: f32) -> f32 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// Straightforward f64 reference of the same core.
@@ -231,7 +232,8 @@ mod tests {
         out
     }
 
-    fn pseudo_random(n: usize, seed: u64) -> Vec<f32> {
+    /// Deterministic values in [-2, 2).
+    pub(crate) fn pseudo_random(n: usize, seed: u64) -> Vec<f32> {
         let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
         (0..n)
             .map(|_| {

@@ -18,6 +18,7 @@ pub mod error;
 pub mod gelu;
 pub mod head;
 pub mod host_attention;
+pub mod host_attention_grad;
 pub mod infer;
 pub mod linear_bn;
 pub mod model;

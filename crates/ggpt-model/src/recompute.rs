@@ -31,7 +31,8 @@ use crate::model::{Ggpt, GgptOutput, read_tensor_f32};
 use crate::norm;
 use crate::prepared::PreparedBatch;
 use crate::recorder::Recorder;
-use crate::segments::Program;
+use crate::ops::is_cpu_device;
+use crate::segments::{BlockPart, Op, Program};
 
 /// The gradients of `objective(model.forward(batch))` with respect to every parameter of
 /// `model`, computed by segment recomputation (module docs), and what `objective` returned
@@ -71,6 +72,7 @@ fn run<T, E>(
     let program = Program::of(model);
     let device = batch.coord.device().without_autodiff();
     let mut rec = Recorder::disabled();
+    let host_attention = is_cpu_device(&device);
     // 1. Forward without a graph: parameters detached (BatchNorm and drop path still in
     //    training mode), slot values kept without autodiff.
     let frozen = model.clone().no_grad();
@@ -121,6 +123,17 @@ fn run<T, E>(
             .filter_map(|i| leaves.iter().find(|(j, _)| j == i).map(|(_, t)| t.clone()))
             .collect();
         drop_path::restore_mask_rng(&rng_before[k]);
+        if let (Op::Block { stage, block, part: BlockPart::Attn }, true, [Some(g)]) = (seg.op, host_attention, out_grads.as_slice()) {
+            // the attention core differentiated on the host (no score tensor in any graph)
+            let (blocks, level) = model.stage_blocks(batch, stage);
+            let x1 = slot(&values, seg.inputs[0], &device);
+            let mut collect = |grads: &mut Gradients| collect_param_grads(model, grads, &mut acc);
+            if let Some(g_x1) = blocks[block].attn_part_backward(x1, g.clone(), level, &mut collect) {
+                add_slot_grad(&mut slot_grads, seg.inputs[0], Some(g_x1));
+                continue;
+            }
+            drop_path::restore_mask_rng(&rng_before[k]);
+        }
         let outs = norm::without_running_updates(|| model.run_segment(batch, seg.op, &args, &mut rec));
         drop(args);
         let surrogate = outs

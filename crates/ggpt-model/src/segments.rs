@@ -20,11 +20,12 @@
 
 use burn::tensor::Tensor;
 
+use crate::block::Block;
 use crate::config::{NUM_DEC_STAGES, NUM_LEVELS};
 use crate::head::head_outputs;
 use crate::model::{Ggpt, GgptOutput};
 use crate::ops::map_row_blocks;
-use crate::prepared::PreparedBatch;
+use crate::prepared::{PreparedBatch, PreparedLevel};
 use crate::recorder::Recorder;
 
 /// A stage of the backbone: encoder stage `s` (level `s`) or decoder stage `s`.
@@ -189,9 +190,10 @@ impl Ggpt {
                 }
             }
             Op::Block { stage, block, part } => {
-                let (blocks, level, prefix, last_name) = match stage {
-                    Stage::Enc(s) => (&self.enc[s].blocks, &batch.levels[s], format!("enc{s}"), format!("enc{s}.out")),
-                    Stage::Dec(s) => (&self.dec[s].blocks, &batch.levels[s], format!("dec{s}"), if s == 0 { "backbone.out".to_string() } else { format!("dec{s}.out") }),
+                let (blocks, level) = self.stage_blocks(batch, stage);
+                let (prefix, last_name) = match stage {
+                    Stage::Enc(s) => (format!("enc{s}"), format!("enc{s}.out")),
+                    Stage::Dec(s) => (format!("dec{s}"), if s == 0 { "backbone.out".to_string() } else { format!("dec{s}.out") }),
                 };
                 let b = &blocks[block];
                 let name = format!("{prefix}.block{block}");
@@ -213,6 +215,14 @@ impl Ggpt {
                 // levels 0..=3 always pool (PreparedBatch::new checks it)
                 None => vec![arg(1), arg(1)],
             },
+        }
+    }
+
+    /// The blocks of `stage` and the prepared tables of its level.
+    pub fn stage_blocks<'a>(&'a self, batch: &'a PreparedBatch, stage: Stage) -> (&'a [Block], &'a PreparedLevel) {
+        match stage {
+            Stage::Enc(s) => (&self.enc[s].blocks, &batch.levels[s]),
+            Stage::Dec(s) => (&self.dec[s].blocks, &batch.levels[s]),
         }
     }
 
