@@ -63,6 +63,18 @@ impl WindowAttention {
     /// [`crate::host_attention`] (GEMM blocks + vectorised softmax, no `[W, H, L, L]` score
     /// tensor); otherwise the explicit `softmax(q k^T s) v` that autodiff differentiates.
     pub fn forward_profiled(&self, x: Tensor<2>, index: &AttnIndex, stage: &str) -> Tensor<2> {
+        self.project(self.core_profiled(x, index, stage), stage)
+    }
+
+    /// The output projection `proj`: `core [N, C] -> [N, C]`, timed under `{stage}.attn.proj`.
+    pub fn project(&self, core: Tensor<2>, stage: &str) -> Tensor<2> {
+        profile::scope(|| format!("{stage}.attn.proj"), || self.proj.forward(core))
+    }
+
+    /// The attention before its output projection: `x [N, C]` (normalised tokens) `-> [N, C]`,
+    /// every token's row of its window's `softmax(q kᵀ s) v` (heads concatenated). Timed under
+    /// `{stage}.attn.{qkv,core}`; the core as described at [`Self::forward_profiled`].
+    pub fn core_profiled(&self, x: Tensor<2>, index: &AttnIndex, stage: &str) -> Tensor<2> {
         let [_, c] = x.dims();
         let h = self.num_heads;
         let d = c / h;
@@ -105,7 +117,7 @@ impl WindowAttention {
             },
             _ => Tensor::cat(outs, 0),
         };
-        profile::scope(|| format!("{stage}.attn.proj"), || self.proj.forward(gather_rows(all, index.take.clone())))
+        gather_rows(all, index.take.clone())
     }
 }
 
@@ -152,31 +164,41 @@ pub struct HostCoreSaved {
 impl WindowAttention {
     /// The attention core on the host from the projection of every token:
     /// `qkv [N, 3C]` row-major (the `qkv` Linear applied to all `N` rows) `-> [N, C]`, the
-    /// same function as the core of [`Self::forward`] (whose `qkv` runs on the gathered rows).
+    /// same function as [`Self::core_profiled`] (whose `qkv` runs on the gathered rows), and
+    /// what its backward needs.
     pub fn host_core_forward(&self, qkv: &[f32], index: &HostAttnIndex) -> Option<(Vec<f32>, HostCoreSaved)> {
+        let saved = self.host_core_saved(qkv, index)?;
+        let c = self.qkv.weight.dims()[1] / 3;
+        let mut all = Vec::new();
+        for (rows, shape) in &saved.groups {
+            all.extend(window_attention(rows, *shape, attention_scale(shape.head_dim))?);
+        }
+        let mut out = Vec::with_capacity(index.take.len() * c);
+        for &r in &index.take {
+            out.extend_from_slice(all.get(r * c..(r + 1) * c)?);
+        }
+        Some((out, saved))
+    }
+
+    /// What [`Self::host_core_backward`] needs from `qkv [N, 3C]` (row-major, every token):
+    /// the projection rows of every window slot, group by group. `None` when the lengths do
+    /// not match the layer.
+    pub fn host_core_saved(&self, qkv: &[f32], index: &HostAttnIndex) -> Option<HostCoreSaved> {
         let (c3, n) = (self.qkv.weight.dims()[1], index.take.len());
         let (c, h) = (c3 / 3, self.num_heads);
         if qkv.len() != n * c3 || h == 0 || c % h != 0 {
             return None;
         }
         let d = c / h;
-        let scale = (d as f64).powf(-0.5) as f32;
-        let mut all = Vec::new();
-        let mut saved = Vec::with_capacity(index.groups.len());
+        let mut groups = Vec::with_capacity(index.groups.len());
         for (gather, windows, len) in &index.groups {
             let mut rows = Vec::with_capacity(gather.len() * c3);
             for &t in gather {
-                rows.extend_from_slice(&qkv[t * c3..(t + 1) * c3]);
+                rows.extend_from_slice(qkv.get(t * c3..(t + 1) * c3)?);
             }
-            let shape = WindowShape { windows: *windows, len: *len, heads: h, head_dim: d };
-            all.extend(window_attention(&rows, shape, scale)?);
-            saved.push((rows, shape));
+            groups.push((rows, WindowShape { windows: *windows, len: *len, heads: h, head_dim: d }));
         }
-        let mut out = Vec::with_capacity(n * c);
-        for &r in &index.take {
-            out.extend_from_slice(all.get(r * c..(r + 1) * c)?);
-        }
-        Some((out, HostCoreSaved { groups: saved }))
+        Some(HostCoreSaved { groups })
     }
 
     /// Gradient of [`Self::host_core_forward`]: `d_out [N, C]` -> `d_qkv [N, 3C]` (the rows of
@@ -197,9 +219,8 @@ impl WindowAttention {
         let mut d_qkv = vec![0.0f32; n * c3];
         let mut offset = 0;
         for ((rows, shape), (gather, _, _)) in saved.groups.iter().zip(&index.groups) {
-            let scale = (shape.head_dim as f64).powf(-0.5) as f32;
             let m = rows.len() / 3;
-            let d_rows = window_attention_backward(rows, &d_rows_out[offset..offset + m], *shape, scale)?;
+            let d_rows = window_attention_backward(rows, d_rows_out.get(offset..offset + m)?, *shape, attention_scale(shape.head_dim))?;
             offset += m;
             for (&t, g) in gather.iter().zip(d_rows.chunks_exact(c3)) {
                 for (acc, x) in d_qkv[t * c3..(t + 1) * c3].iter_mut().zip(g) {
@@ -209,6 +230,11 @@ impl WindowAttention {
         }
         Some(d_qkv)
     }
+}
+
+/// The softmax scale `d^-1/2` of a head width `d` (network.md §7), in f32 for the host kernels.
+fn attention_scale(head_dim: usize) -> f32 {
+    (head_dim as f64).powf(-0.5) as f32
 }
 
 /// The host kernel on the `[W L, 3C]` projection rows; `None` when they cannot be read back as

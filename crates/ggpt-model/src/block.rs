@@ -111,11 +111,19 @@ impl Block {
 
     /// `x2 = x1 + DropPath(Attn(LN1(x1)))`: `x1 [N, C] -> [N, C]`; records `{name}.attn_out`.
     pub fn attn_part(&self, x1: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> Tensor<2> {
+        self.attn_part_with_core(x1, level, rec, name).0
+    }
+
+    /// [`Self::attn_part`], also returning the attention before its output projection
+    /// `[N, C]` ([`WindowAttention::core_profiled`]), which [`Self::attn_part_backward`] can
+    /// take instead of recomputing it.
+    pub fn attn_part_with_core(&self, x1: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> (Tensor<2>, Tensor<2>) {
         let stage = stage_of(name);
         let normed = profile::scope(|| format!("{stage}.ln1"), || self.norm1.forward(x1.clone()));
-        let attn = self.attn.forward_profiled(normed, &level.attn[self.order_row], stage);
+        let core = self.attn.core_profiled(normed, &level.attn[self.order_row], stage);
+        let attn = self.attn.project(core.clone(), stage);
         rec.record(|| format!("{name}.attn_out"), &attn);
-        x1 + self.drop_path.forward(attn)
+        (x1 + self.drop_path.forward(attn), core)
     }
 
     /// Backward of [`Self::attn_part`] with the attention core on the host (CPU training,
@@ -125,9 +133,12 @@ impl Block {
     /// never a score tensor. `None` (nothing collected) when a host readback fails or the
     /// tables are inconsistent: the caller then differentiates [`Self::attn_part`] itself.
     ///
+    /// `core`, when given, is the attention before its projection that the forward computed
+    /// ([`Self::attn_part_with_core`], `[N, C]`): the backward then skips recomputing it.
+    ///
     /// The drop-path mask is drawn once, as by [`Self::attn_part`] (the caller restores the
     /// mask RNG before).
-    pub fn attn_part_backward(&self, x1: Tensor<2>, g_x2: Tensor<2>, level: &PreparedLevel, collect: &mut dyn FnMut(&mut Gradients)) -> Option<Tensor<2>> {
+    pub fn attn_part_backward(&self, x1: Tensor<2>, g_x2: Tensor<2>, level: &PreparedLevel, core: Option<Tensor<2>>, collect: &mut dyn FnMut(&mut Gradients)) -> Option<Tensor<2>> {
         let [n, c] = x1.dims();
         let device = x1.device();
         let index = HostAttnIndex::read(&level.attn[self.order_row], n)?;
@@ -135,7 +146,13 @@ impl Block {
         let xa = x1.clone().autodiff().require_grad();
         let qkv = self.attn.qkv.forward(self.norm1.forward(xa.clone()));
         let qkv_host = qkv.clone().try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()?;
-        let (out, saved) = self.attn.host_core_forward(&qkv_host, &index)?;
+        let (out, saved) = match core {
+            Some(core) if core.dims() == [n, c] => {
+                let out = core.try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()?;
+                (out, self.attn.host_core_saved(&qkv_host, &index)?)
+            }
+            _ => profile::scope(|| "step.host_attn_core.forward".to_string(), || self.attn.host_core_forward(&qkv_host, &index))?,
+        };
         drop(qkv_host);
         // y = x1 + DropPath(proj(out)): gradients of x1 (residual), proj and out
         let out = Tensor::<2>::from_data(TensorData::new(out, [n, c]), &device).autodiff().require_grad();
@@ -148,7 +165,7 @@ impl Block {
             Some(g) => g.try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()?,
             None => vec![0.0; n * c],
         };
-        let d_qkv = self.attn.host_core_backward(&saved, &g_out, &index)?;
+        let d_qkv = profile::scope(|| "step.host_attn_core.backward".to_string(), || self.attn.host_core_backward(&saved, &g_out, &index))?;
         drop(saved);
         let d_qkv = Tensor::<2>::from_data(TensorData::new(d_qkv, [n, 3 * c]), &device).autodiff();
         let mut grads_ln = (qkv * d_qkv).sum().backward();

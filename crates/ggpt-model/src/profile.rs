@@ -1,4 +1,5 @@
-//! Opt-in wall-clock profile of the forward pass by building block (docs/performance.md).
+//! Opt-in wall-clock profile by building block: the forward's parts, and the phases of a
+//! recomputing training step (`step.*`, [`crate::recompute`]) (docs/performance.md).
 //!
 //! Disabled by default: [`scope`] then costs one relaxed atomic load. When enabled
 //! ([`set_enabled`]), every scope adds its wall time to a process-wide table keyed by name,
@@ -25,18 +26,35 @@ pub fn is_enabled() -> bool {
 
 /// Runs `f`, adding its wall time to entry `name()` when profiling is on.
 pub fn scope<T>(name: impl FnOnce() -> String, f: impl FnOnce() -> T) -> T {
-    if !is_enabled() {
-        return f();
+    let _timer = Timer::start(name);
+    f()
+}
+
+/// A scope that ends when dropped (for bodies with early exits): adds its wall time to entry
+/// `name` when profiling was on at [`Timer::start`].
+#[derive(Debug)]
+pub struct Timer {
+    name: Option<String>,
+    t0: Instant,
+}
+
+impl Timer {
+    /// Starts timing entry `name()` (not evaluated when profiling is off).
+    pub fn start(name: impl FnOnce() -> String) -> Self {
+        Self { name: is_enabled().then(name), t0: Instant::now() }
     }
-    let t0 = Instant::now();
-    let out = f();
-    let dt = t0.elapsed().as_secs_f64();
-    if let Ok(mut table) = TABLE.lock() {
-        let e = table.entry(name()).or_insert((0.0, 0));
-        e.0 += dt;
-        e.1 += 1;
+}
+
+impl Drop for Timer {
+    fn drop(&mut self) {
+        let Some(name) = self.name.take() else { return };
+        let dt = self.t0.elapsed().as_secs_f64();
+        if let Ok(mut table) = TABLE.lock() {
+            let e = table.entry(name).or_insert((0.0, 0));
+            e.0 += dt;
+            e.1 += 1;
+        }
     }
-    out
 }
 
 /// One profile entry: total seconds and number of calls.

@@ -20,6 +20,10 @@
 //!   it is left where the forward left it, as after a plain step. An unseeded thread (device
 //!   RNG) is seeded for the step from one draw of the device RNG.
 //!
+//! On CPU devices the attention parts are differentiated on the host
+//! ([`crate::block::Block::attn_part_backward`]); their forward also keeps the attention before
+//! its projection (`[N, C]` per attention block), so that the backward does not recompute it.
+//!
 //! Cost: one extra forward per step (no graph), against a graph bounded by the largest segment.
 
 use burn::module::{Module, ModuleVisitor, Param};
@@ -32,7 +36,8 @@ use crate::norm;
 use crate::prepared::PreparedBatch;
 use crate::recorder::Recorder;
 use crate::ops::is_cpu_device;
-use crate::segments::{BlockPart, Op, Program};
+use crate::profile;
+use crate::segments::{BlockPart, Op, Program, Stage};
 
 /// The gradients of `objective(model.forward(batch))` with respect to every parameter of
 /// `model`, computed by segment recomputation (module docs), and what `objective` returned
@@ -78,10 +83,17 @@ fn run<T, E>(
     let frozen = model.clone().no_grad();
     let mut values: Vec<Option<Tensor<2>>> = vec![None; program.num_slots];
     let mut rng_before = Vec::with_capacity(program.segments.len());
-    for seg in &program.segments {
+    // per segment, the attention before its projection (attention parts on CPU devices, where
+    // the host backward takes it instead of recomputing the core)
+    let mut attn_cores: Vec<Option<Tensor<2>>> = vec![None; program.segments.len()];
+    for (k, seg) in program.segments.iter().enumerate() {
         rng_before.push(drop_path::mask_rng_state());
         let args: Vec<Tensor<2>> = seg.inputs.iter().map(|&i| slot(&values, i, &device).autodiff()).collect();
-        for (&o, t) in seg.outputs.iter().zip(frozen.run_segment(batch, seg.op, &args, &mut rec)) {
+        let (outs, core) = profile::scope(|| format!("step.forward.{}", op_kind(seg.op)), || frozen.run_segment_keeping_core(batch, seg.op, &args, &mut rec));
+        if host_attention {
+            attn_cores[k] = core.map(Tensor::without_autodiff);
+        }
+        for (&o, t) in seg.outputs.iter().zip(outs) {
             values[o] = Some(t.without_autodiff());
         }
     }
@@ -93,15 +105,15 @@ fn run<T, E>(
     let mut slot_grads: Vec<Option<Tensor<2>>> = vec![None; program.num_slots];
     let [y_slot, feat_slot] = program.head_inputs;
     let (y, feat) = (leaf(&values, y_slot, &device), leaf(&values, feat_slot, &device));
-    let out = model.run_head(batch, y.clone(), feat.clone(), &mut rec);
-    let (loss, extra) = objective(out)?;
-    let mut grads = loss.backward();
+    let (loss, extra) = profile::scope(|| "step.head_and_loss".to_string(), || objective(model.run_head(batch, y.clone(), feat.clone(), &mut rec)))?;
+    let mut grads = profile::scope(|| "step.backward.head".to_string(), || loss.backward());
     add_slot_grad(&mut slot_grads, y_slot, y.grad_remove(&mut grads));
     add_slot_grad(&mut slot_grads, feat_slot, feat.grad_remove(&mut grads));
     collect_param_grads(model, &mut grads, &mut acc);
     drop(grads);
 
     for (k, seg) in program.segments.iter().enumerate().rev() {
+        let _timer = profile::Timer::start(|| format!("step.backward.{}", op_kind(seg.op)));
         let out_grads: Vec<Option<Tensor<2>>> = seg.outputs.iter().map(|&o| slot_grads[o].take()).collect();
         for &o in &seg.outputs {
             // every reader of the outputs came later and has been processed
@@ -128,7 +140,7 @@ fn run<T, E>(
             let (blocks, level) = model.stage_blocks(batch, stage);
             let x1 = slot(&values, seg.inputs[0], &device);
             let mut collect = |grads: &mut Gradients| collect_param_grads(model, grads, &mut acc);
-            if let Some(g_x1) = blocks[block].attn_part_backward(x1, g.clone(), level, &mut collect) {
+            if let Some(g_x1) = blocks[block].attn_part_backward(x1, g.clone(), level, attn_cores[k].take(), &mut collect) {
                 add_slot_grad(&mut slot_grads, seg.inputs[0], Some(g_x1));
                 continue;
             }
@@ -149,6 +161,29 @@ fn run<T, E>(
         collect_param_grads(model, &mut grads, &mut acc);
     }
     Ok((acc, extra))
+}
+
+/// Profile key of a segment kind (`enc2.attn`, `down`, ...): [`crate::profile`] sums the
+/// forward and the backward of every segment of that kind.
+fn op_kind(op: Op) -> String {
+    match op {
+        Op::Embed => "embed".into(),
+        Op::Stem => "stem".into(),
+        Op::Down(_) => "down".into(),
+        Op::Up(_) => "up".into(),
+        Op::Block { stage, part, .. } => {
+            let stage = match stage {
+                Stage::Enc(s) => format!("enc{s}"),
+                Stage::Dec(s) => format!("dec{s}"),
+            };
+            let part = match part {
+                BlockPart::Cpe => "cpe",
+                BlockPart::Attn => "attn",
+                BlockPart::Mlp => "mlp",
+            };
+            format!("{stage}.{part}")
+        }
+    }
 }
 
 /// The stored value of slot `i`. [`Program`] has every slot written before it is read, so the
@@ -314,6 +349,45 @@ mod tests {
         assert!(rw.iter().zip(&rg).all(|(a, b)| (a - b).abs() <= 1e-6), "running statistics differ");
         assert_ne!(rw, running(&base.valid()), "the running statistics were updated");
         assert_eq!(format!("{want_rng:?}"), format!("{got_rng:?}"), "the mask RNG ends where a plain forward leaves it");
+    }
+
+    /// The host attention backward gives the same gradients whether it takes the attention
+    /// core kept by the forward or recomputes it.
+    #[test]
+    fn attention_backward_with_the_forward_core_equals_recomputing_it() {
+        let _rng = rng_lock();
+        let device = crate::device::device_from_name("ndarray").unwrap().autodiff();
+        let host = device.clone().without_autodiff();
+        let mut cfg = GgptConfig::tiny();
+        cfg.drop_path = 0.0;
+        host.seed(4);
+        let model = Ggpt::new(&cfg, &host).fork(&device).train();
+        let batch = prepare_chunks(&cfg, &[surface_chunk(300, 3)], &device).unwrap();
+        let stage = Stage::Enc(0);
+        let (blocks, level) = model.stage_blocks(&batch, stage);
+        let c = blocks[0].norm1.gamma.val().dims()[0];
+        let x1 = Tensor::<2>::random([level.num_tokens, c], Distribution::Uniform(-1.0, 1.0), &host);
+        let g = Tensor::<2>::random([level.num_tokens, c], Distribution::Uniform(-1.0, 1.0), &host);
+        let frozen = model.clone().no_grad();
+        let (frozen_blocks, _) = frozen.stage_blocks(&batch, stage);
+        let (_, core) = frozen_blocks[0].attn_part_with_core(x1.clone().autodiff(), level, &mut Recorder::disabled(), "enc0.block0");
+        let backward = |core: Option<Tensor<2>>| {
+            let mut acc = GradientsParams::new();
+            let mut collect = |grads: &mut Gradients| collect_param_grads(&model, grads, &mut acc);
+            let g_x1 = blocks[0].attn_part_backward(x1.clone(), g.clone(), level, core, &mut collect).expect("host backward");
+            (read_tensor_f32(&g_x1, "g_x1").unwrap(), flat(&model, &acc))
+        };
+        let (kept_x1, kept) = backward(Some(core.without_autodiff()));
+        let (recomputed_x1, recomputed) = backward(None);
+        let close = |a: &[f32], b: &[f32]| {
+            let max = a.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-12);
+            a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-5 * max)
+        };
+        assert!(close(&kept_x1, &recomputed_x1), "input gradients differ");
+        assert!(kept.iter().filter(|(_, v)| !v.is_empty()).count() >= 4, "qkv, proj and LN1 gradients");
+        for ((name, a), (_, b)) in kept.iter().zip(&recomputed) {
+            assert!(close(a, b), "gradient of {name} differs");
+        }
     }
 
     /// An objective error aborts before any backward and leaves the caller's RNG state.

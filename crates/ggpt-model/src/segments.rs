@@ -167,6 +167,12 @@ impl Ggpt {
     /// tensors of [`Segment::outputs`]. Shapes as in the module table; recording under the
     /// fixture names when `rec` is enabled.
     pub fn run_segment(&self, batch: &PreparedBatch, op: Op, inputs: &[Tensor<2>], rec: &mut Recorder) -> Vec<Tensor<2>> {
+        self.run_segment_keeping_core(batch, op, inputs, rec).0
+    }
+
+    /// [`Self::run_segment`], also returning for an attention part ([`BlockPart::Attn`]) the
+    /// attention before its output projection `[N, C]` ([`Block::attn_part_with_core`]).
+    pub fn run_segment_keeping_core(&self, batch: &PreparedBatch, op: Op, inputs: &[Tensor<2>], rec: &mut Recorder) -> (Vec<Tensor<2>>, Option<Tensor<2>>) {
         let arg = |i: usize| inputs[i].clone();
         match op {
             Op::Embed => {
@@ -175,19 +181,20 @@ impl Ggpt {
                 let feat = Tensor::cat(vec![type_rows, batch.feat_no_embed.clone()], 1);
                 rec.record(|| "input.feat".into(), &feat);
                 rec.record(|| "input.coord".into(), &batch.coord);
-                vec![feat]
+                (vec![feat], None)
             }
             Op::Stem => {
                 let x = self.embedding.forward(arg(0));
                 rec.record(|| "embedding.out".into(), &x);
-                vec![x]
+                (vec![x], None)
             }
             Op::Down(s) => {
                 let pool = s.checked_sub(1).and_then(|p| batch.levels[p].pool.as_ref());
-                match (&self.enc[s].down, pool) {
-                    (Some(down), Some(prev)) => vec![down.forward(arg(0), prev, rec, &format!("enc{s}.down"))],
-                    _ => vec![arg(0)],
-                }
+                let out = match (&self.enc[s].down, pool) {
+                    (Some(down), Some(prev)) => down.forward(arg(0), prev, rec, &format!("enc{s}.down")),
+                    _ => arg(0),
+                };
+                (vec![out], None)
             }
             Op::Block { stage, block, part } => {
                 let (blocks, level) = self.stage_blocks(batch, stage);
@@ -197,23 +204,26 @@ impl Ggpt {
                 };
                 let b = &blocks[block];
                 let name = format!("{prefix}.block{block}");
-                let out = match part {
-                    BlockPart::Cpe => b.cpe_part(arg(0), arg(1), level, rec, &name),
-                    BlockPart::Attn => b.attn_part(arg(0), level, rec, &name),
-                    BlockPart::Mlp => b.mlp_part(arg(0), rec, &name),
+                let (out, core) = match part {
+                    BlockPart::Cpe => (b.cpe_part(arg(0), arg(1), level, rec, &name), None),
+                    BlockPart::Attn => {
+                        let (out, core) = b.attn_part_with_core(arg(0), level, rec, &name);
+                        (out, Some(core))
+                    }
+                    BlockPart::Mlp => (b.mlp_part(arg(0), rec, &name), None),
                 };
                 if part == BlockPart::Mlp && block + 1 == blocks.len() {
                     rec.record(|| last_name, &out);
                 }
-                vec![out]
+                (vec![out], core)
             }
             Op::Up(s) => match batch.levels[s].pool.as_ref() {
                 Some(pool) => {
                     let (u, proj_skip) = self.dec[s].up.forward(arg(0), arg(1), pool.cluster.clone(), rec, &format!("dec{s}.up"));
-                    vec![u, proj_skip]
+                    (vec![u, proj_skip], None)
                 }
                 // levels 0..=3 always pool (PreparedBatch::new checks it)
-                None => vec![arg(1), arg(1)],
+                None => (vec![arg(1), arg(1)], None),
             },
         }
     }

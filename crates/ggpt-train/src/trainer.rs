@@ -304,7 +304,7 @@ fn run_replica(replica: Ggpt, cfg: &GgptConfig, parts: &[&[&TrainChunk]], first:
     for (j, part) in parts.iter().enumerate() {
         ggpt_model::drop_path::seed_drop_path(plan.drop_path_seed.map(|s| step_seed(s, (first + j) as u64, 3)));
         let inputs: Vec<ChunkInput> = part.iter().map(|c| c.to_input()).collect();
-        let batch = ggpt_model::infer::prepare_chunks(cfg, &inputs, &device)?;
+        let batch = ggpt_model::profile::scope(|| "step.prepare".to_string(), || ggpt_model::infer::prepare_chunks(cfg, &inputs, &device))?;
         // the part's mean loss weighted by its share of the batch: the sum over parts is the
         // batch's mean loss, whatever the split
         let w = part.len() as f64 / total_chunks as f64;
@@ -321,8 +321,9 @@ fn run_replica(replica: Ggpt, cfg: &GgptConfig, parts: &[&[&TrainChunk]], first:
         let (g, vals) = match plan.recompute {
             Recompute::Segments => ggpt_model::recompute::recomputed_gradients(&replica, &batch, objective)?,
             Recompute::Off => {
-                let (total, vals) = objective(replica.forward(&batch))?;
-                (GradientsParams::from_grads(total.backward(), &replica), vals)
+                let (total, vals) = ggpt_model::profile::scope(|| "step.forward".to_string(), || objective(replica.forward(&batch)))?;
+                let grads = ggpt_model::profile::scope(|| "step.backward".to_string(), || total.backward());
+                (GradientsParams::from_grads(grads, &replica), vals)
             }
         };
         for (s, v) in loss_sum.iter_mut().zip(vals) {
@@ -395,7 +396,7 @@ pub fn parallel_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig,
     let parts = split_batch(chunks, replicas * k);
     // Replicas are independent copies (`valid` gives fresh running-statistics cells) with the
     // main model's training flags (a test may switch BatchNorm to eval mode).
-    let mut copies: Vec<Ggpt> = plan.devices.iter().map(|d| model.valid().fork(d).train()).collect();
+    let mut copies: Vec<Ggpt> = ggpt_model::profile::scope(|| "step.replica_copies".to_string(), || plan.devices.iter().map(|d| model.valid().fork(d).train()).collect());
     let flags: Vec<Param<burn::module::Flag>> = model.named_batch_norms().into_iter().map(|(_, bn)| bn.training.clone()).collect();
     for copy in &mut copies {
         for (bn, flag) in copy.batch_norms_mut().into_iter().zip(&flags) {
@@ -436,8 +437,8 @@ pub fn parallel_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig,
         });
     }
     let mut grads = grads.ok_or_else(|| TrainError::Invalid("no gradients".into()))?;
-    let grad_norm = clip_global_norm(&model, &mut grads, clip)?;
-    let mut model = optim.step(lr, model, grads);
+    let grad_norm = ggpt_model::profile::scope(|| "step.clip".to_string(), || clip_global_norm(&model, &mut grads, clip))?;
+    let mut model = ggpt_model::profile::scope(|| "step.adam".to_string(), || optim.step(lr, model, grads));
     // running statistics: the mean over replicas, in replica order
     let n = running.len() as f64;
     for (i, bn) in model.batch_norms_mut().into_iter().enumerate() {

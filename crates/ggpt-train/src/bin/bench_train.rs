@@ -53,6 +53,11 @@ struct Args {
     /// CPU threads (0: all cores).
     #[arg(long, default_value_t = 0)]
     threads: usize,
+    /// Print, after each row, the wall time of the step's phases summed over its timed steps
+    /// (`ggpt_model::profile`: recomputation forward / backward per segment kind, host attention
+    /// core), to stderr. Eager CPU backends only.
+    #[arg(long)]
+    profile: bool,
 }
 
 /// A training chunk: the benchmark surface as input, GT 1 % off the dense points.
@@ -110,6 +115,8 @@ fn main() -> Result<()> {
                 let mut optim = adam();
                 let mut secs = Vec::with_capacity(args.steps);
                 for s in 0..=args.steps {
+                    // the warm-up step is not profiled
+                    ggpt_model::profile::set_enabled(args.profile && s > 0);
                     let t = Instant::now();
                     let plan = StepPlan { devices: &replicas, grad_accum: args.grad_accum, drop_path_seed: Some(s as u64), recompute: mode };
                     let (m, loss) = parallel_step(model, &mut optim, &cfg, &refs, 1e-4, None, &plan).with_context(|| format!("{name}: step {s}"))?;
@@ -118,6 +125,12 @@ fn main() -> Result<()> {
                         secs.push(t.elapsed().as_secs_f64());
                     }
                     tracing::debug!("step {s}: loss {:.4}", loss.total);
+                }
+                ggpt_model::profile::set_enabled(false);
+                if args.profile {
+                    for e in ggpt_model::profile::take_report() {
+                        eprintln!("profile {name} {tokens} {mode:?} {:<32} {:>9.3} s {:>6} calls", e.name, e.seconds, e.calls);
+                    }
                 }
                 let mean = secs.iter().sum::<f64>() / secs.len() as f64;
                 let peak = peak_rss_mib();
