@@ -15,6 +15,7 @@ use crate::attention::{HostAttnIndex, WindowAttention};
 use crate::config::GgptConfig;
 use crate::drop_path::DropPath;
 use crate::gelu::gelu;
+use crate::host_conv_grad::{HostConvTables, subm_conv_backward};
 use crate::norm::layer_norm;
 use crate::ops::map_row_blocks;
 use crate::prepared::PreparedLevel;
@@ -109,6 +110,41 @@ impl Block {
         x + cpe
     }
 
+    /// Backward of [`Self::cpe_part`] with the sparse conv differentiated on the host (CPU
+    /// training, `crate::recompute`, [`crate::host_conv_grad`]): `x, x_conv [N, C]` (the segment
+    /// inputs, no graph) and `g_x1 [N, C]` (the gradient of its output). The graph holds only
+    /// the CPE Linear and LayerNorm on the conv output; their parameter gradients go to
+    /// `collect`. `None` (nothing collected) when a host readback fails or the tables are
+    /// inconsistent: the caller then differentiates [`Self::cpe_part`] itself.
+    pub fn cpe_part_backward(&self, x: Tensor<2>, x_conv: Tensor<2>, g_x1: Tensor<2>, level: &PreparedLevel, collect: &mut dyn FnMut(&mut Gradients)) -> Option<CpeGrads> {
+        let [n, c_in] = x_conv.dims();
+        let c_out = self.cpe.conv.bias.val().dims()[0];
+        let device = x.device();
+        let tables = HostConvTables::read(&level.conv)?;
+        // the conv output without a graph (frozen weights), then a leaf for the rest
+        let conv = self.cpe.conv.clone().no_grad().forward(x_conv.clone().autodiff(), &level.conv);
+        let y = conv.require_grad();
+        let xb = x.autodiff().require_grad();
+        let x1 = xb.clone() + self.cpe.norm.forward(self.cpe.linear.forward(y.clone()));
+        let mut grads = (x1 * g_x1.autodiff()).sum().backward();
+        let g_x = xb.grad_remove(&mut grads).unwrap_or_else(|| Tensor::zeros([n, c_in], &device));
+        let g_y = match y.grad_remove(&mut grads) {
+            Some(g) => read_f32(g)?,
+            None => vec![0.0; n * c_out],
+        };
+        let weight = read_f32(self.cpe.conv.weight.val())?;
+        let d = profile::scope(|| "step.host_conv.backward".to_string(), || subm_conv_backward(&read_f32(x_conv)?, &g_y, &weight, c_in, c_out, &tables))?;
+        // only now, so that a `None` above collected nothing
+        collect(&mut grads);
+        let [_, k0, k1, k2, _] = self.cpe.conv.weight.dims();
+        Some(CpeGrads {
+            x: g_x,
+            x_conv: Tensor::from_data(TensorData::new(d.input, [n, c_in]), &device),
+            conv_weight: Tensor::from_data(TensorData::new(d.weight, [c_out, k0, k1, k2, c_in]), &device),
+            conv_bias: Tensor::from_data(TensorData::new(d.bias, [c_out]), &device),
+        })
+    }
+
     /// `x2 = x1 + DropPath(Attn(LN1(x1)))`: `x1 [N, C] -> [N, C]`; records `{name}.attn_out`.
     pub fn attn_part(&self, x1: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> Tensor<2> {
         self.attn_part_with_core(x1, level, rec, name).0
@@ -194,6 +230,24 @@ impl Block {
         rec.record(|| format!("{name}.out"), &x3);
         x3
     }
+}
+
+/// Gradients of [`Block::cpe_part_backward`] (on the device of its inputs, no graph).
+#[derive(Debug, Clone)]
+pub struct CpeGrads {
+    /// Of the residual input `x` `[N, C]`.
+    pub x: Tensor<2>,
+    /// Of the conv input `x_conv` `[N, C]`.
+    pub x_conv: Tensor<2>,
+    /// Of `cpe.conv.weight` `[C_out, 3, 3, 3, C_in]`.
+    pub conv_weight: Tensor<5>,
+    /// Of `cpe.conv.bias` `[C_out]`.
+    pub conv_bias: Tensor<1>,
+}
+
+/// The f32 values of `t`, row-major; `None` when they cannot be read back.
+fn read_f32<const D: usize>(t: Tensor<D>) -> Option<Vec<f32>> {
+    t.try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()
 }
 
 /// Profile key of a block name: the stage (`enc0`, `dec3`, ...).

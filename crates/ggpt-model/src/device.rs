@@ -77,18 +77,24 @@ pub fn init_cpu_threads(threads: usize) -> Result<()> {
 /// operation (glibc malloc; a no-op elsewhere). CPU forwards allocate and free large buffers
 /// (activations, im2col blocks) op after op; with glibc's defaults every buffer above 128 KiB is
 /// a fresh `mmap` whose pages fault in on first touch and are unmapped on free, which profiles
-/// showed as ~20 % of a CPU forward. Raising the mmap and trim thresholds to 1 GiB lets those
-/// buffers be reused from the heap. Peak memory is unchanged (the same buffers are live); the
-/// resident size stays at the peak between forwards. Call once at start-up.
-pub fn tune_allocator() {
+/// showed as ~20 % of a CPU forward. Raising the mmap threshold to glibc's maximum (32 MiB on
+/// 64-bit: `mallopt` rejects anything above `HEAP_MAX_SIZE / 2`, and a rejected value left the
+/// default in place before 2026-12-03) and the trim threshold to 1 GiB lets those buffers be
+/// reused from the heap. Peak memory is unchanged (the same buffers are live); the resident size
+/// stays at the peak between forwards. Call once at start-up; returns whether glibc accepted
+/// both settings (`true` off glibc).
+pub fn tune_allocator() -> bool {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
-        const THRESHOLD: libc::c_int = 1 << 30;
+        /// glibc's largest accepted `M_MMAP_THRESHOLD` on 64-bit (`DEFAULT_MMAP_THRESHOLD_MAX`).
+        const MMAP_THRESHOLD: libc::c_int = 32 << 20;
+        const TRIM_THRESHOLD: libc::c_int = 1 << 30;
         // SAFETY: mallopt only adjusts glibc malloc parameters; no memory is touched.
-        unsafe {
-            libc::mallopt(libc::M_MMAP_THRESHOLD, THRESHOLD);
-            libc::mallopt(libc::M_TRIM_THRESHOLD, THRESHOLD);
-        }
+        unsafe { libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD) == 1 && libc::mallopt(libc::M_TRIM_THRESHOLD, TRIM_THRESHOLD) == 1 }
+    }
+    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+    {
+        true
     }
 }
 
@@ -104,6 +110,11 @@ fn _kind(_: DeviceKind) {}
 #[cfg(test)]
 mod index_tests {
     use super::*;
+
+    #[test]
+    fn the_allocator_settings_are_accepted() {
+        assert!(tune_allocator(), "glibc rejected a mallopt setting");
+    }
 
     #[test]
     fn device_names_take_an_optional_index() {

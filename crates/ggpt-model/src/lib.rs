@@ -19,6 +19,7 @@ pub mod gelu;
 pub mod head;
 pub mod host_attention;
 pub mod host_attention_grad;
+pub mod host_conv_grad;
 pub mod infer;
 pub mod linear_bn;
 pub mod model;

@@ -20,13 +20,14 @@
 //!   it is left where the forward left it, as after a plain step. An unseeded thread (device
 //!   RNG) is seeded for the step from one draw of the device RNG.
 //!
-//! On CPU devices the attention parts are differentiated on the host
-//! ([`crate::block::Block::attn_part_backward`]); their forward also keeps the attention before
-//! its projection (`[N, C]` per attention block), so that the backward does not recompute it.
+//! On CPU devices the attention cores and the sparse convs are differentiated on the host
+//! ([`crate::block::Block::attn_part_backward`], [`crate::block::Block::cpe_part_backward`]);
+//! the forward also keeps the attention before its projection (`[N, C]` per attention block),
+//! so that the backward does not recompute it.
 //!
 //! Cost: one extra forward per step (no graph), against a graph bounded by the largest segment.
 
-use burn::module::{Module, ModuleVisitor, Param};
+use burn::module::{Module, ModuleVisitor, Param, ParamId};
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Distribution, Gradients, Tensor};
 
@@ -77,7 +78,7 @@ fn run<T, E>(
     let program = Program::of(model);
     let device = batch.coord.device().without_autodiff();
     let mut rec = Recorder::disabled();
-    let host_attention = is_cpu_device(&device);
+    let host_kernels = is_cpu_device(&device);
     // 1. Forward without a graph: parameters detached (BatchNorm and drop path still in
     //    training mode), slot values kept without autodiff.
     let frozen = model.clone().no_grad();
@@ -90,7 +91,7 @@ fn run<T, E>(
         rng_before.push(drop_path::mask_rng_state());
         let args: Vec<Tensor<2>> = seg.inputs.iter().map(|&i| slot(&values, i, &device).autodiff()).collect();
         let (outs, core) = profile::scope(|| format!("step.forward.{}", op_kind(seg.op)), || frozen.run_segment_keeping_core(batch, seg.op, &args, &mut rec));
-        if host_attention {
+        if host_kernels {
             attn_cores[k] = core.map(Tensor::without_autodiff);
         }
         for (&o, t) in seg.outputs.iter().zip(outs) {
@@ -135,7 +136,7 @@ fn run<T, E>(
             .filter_map(|i| leaves.iter().find(|(j, _)| j == i).map(|(_, t)| t.clone()))
             .collect();
         drop_path::restore_mask_rng(&rng_before[k]);
-        if let (Op::Block { stage, block, part: BlockPart::Attn }, true, [Some(g)]) = (seg.op, host_attention, out_grads.as_slice()) {
+        if let (Op::Block { stage, block, part: BlockPart::Attn }, true, [Some(g)]) = (seg.op, host_kernels, out_grads.as_slice()) {
             // the attention core differentiated on the host (no score tensor in any graph)
             let (blocks, level) = model.stage_blocks(batch, stage);
             let x1 = slot(&values, seg.inputs[0], &device);
@@ -145,6 +146,20 @@ fn run<T, E>(
                 continue;
             }
             drop_path::restore_mask_rng(&rng_before[k]);
+        }
+        if let (Op::Block { stage, block, part: BlockPart::Cpe }, true, [Some(g)]) = (seg.op, host_kernels, out_grads.as_slice()) {
+            // the sparse conv differentiated on the host (no per-tap weight slices in a graph)
+            let (blocks, level) = model.stage_blocks(batch, stage);
+            let (x, x_conv) = (slot(&values, seg.inputs[0], &device), slot(&values, seg.inputs[1], &device));
+            let mut collect = |grads: &mut Gradients| collect_param_grads(model, grads, &mut acc);
+            if let Some(d) = blocks[block].cpe_part_backward(x, x_conv, g.clone(), level, &mut collect) {
+                add_slot_grad(&mut slot_grads, seg.inputs[0], Some(d.x));
+                add_slot_grad(&mut slot_grads, seg.inputs[1], Some(d.x_conv));
+                let conv = &blocks[block].cpe.conv;
+                add_param_grad(&mut acc, conv.weight.id, d.conv_weight);
+                add_param_grad(&mut acc, conv.bias.id, d.conv_bias);
+                continue;
+            }
         }
         let outs = norm::without_running_updates(|| model.run_segment(batch, seg.op, &args, &mut rec));
         drop(args);
@@ -216,15 +231,20 @@ fn collect_param_grads(model: &Ggpt, grads: &mut Gradients, acc: &mut GradientsP
     impl ModuleVisitor for Collect<'_> {
         fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
             if let Some(g) = param.val().grad_remove(self.grads) {
-                let g = match self.acc.remove::<D>(param.id) {
-                    Some(prev) => prev + g,
-                    None => g,
-                };
-                self.acc.register::<D>(param.id, g);
+                add_param_grad(self.acc, param.id, g);
             }
         }
     }
     model.visit(&mut Collect { grads, acc });
+}
+
+/// Adds `g` to the gradient `acc` holds for parameter `id`.
+fn add_param_grad<const D: usize>(acc: &mut GradientsParams, id: ParamId, g: Tensor<D>) {
+    let g = match acc.remove::<D>(id) {
+        Some(prev) => prev + g,
+        None => g,
+    };
+    acc.register::<D>(id, g);
 }
 
 /// Whether some block of `model` would drop paths in this forward.
