@@ -18,11 +18,11 @@ use burn::nn::{Linear, LinearConfig};
 use burn::tensor::activation::softmax;
 use burn::tensor::module::attention;
 use burn::tensor::ops::AttentionModuleOptions;
-use burn::tensor::{Device, Int, Tensor, TensorData};
+use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::host_attention::{WindowShape, window_attention};
 use crate::host_attention_grad::window_attention_backward;
-use crate::ops::{gather_rows, is_cpu_device};
+use crate::ops::{gather_rows, is_cpu_device, read_indices};
 use crate::prepared::AttnIndex;
 use crate::profile;
 
@@ -135,21 +135,17 @@ impl HostAttnIndex {
     /// Reads the tables of `index` back; `None` when they cannot be read or are inconsistent
     /// (a gather entry outside `0..num_tokens`, a take entry outside the window rows).
     pub fn read(index: &AttnIndex, num_tokens: usize) -> Option<Self> {
-        let ints = |t: &Tensor<1, Int>| -> Option<Vec<usize>> {
-            let v = t.clone().try_into_data().ok()?.convert::<i64>().try_to_vec::<i64>().ok()?;
-            v.into_iter().map(|x| usize::try_from(x).ok()).collect()
-        };
         let mut groups = Vec::with_capacity(index.groups.len());
         let mut rows = 0;
         for g in &index.groups {
-            let gather = ints(&g.gather)?;
+            let gather = read_indices(&g.gather)?;
             if gather.len() != g.num_windows * g.len || gather.iter().any(|&t| t >= num_tokens) {
                 return None;
             }
             rows += gather.len();
             groups.push((gather, g.num_windows, g.len));
         }
-        let take = ints(&index.take)?;
+        let take = read_indices(&index.take)?;
         (take.len() == num_tokens && take.iter().all(|&r| r < rows)).then_some(Self { groups, take })
     }
 }

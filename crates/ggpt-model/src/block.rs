@@ -181,11 +181,10 @@ impl Block {
         // qkv of every token under autodiff; its values for the host core
         let xa = x1.clone().autodiff().require_grad();
         let qkv = self.attn.qkv.forward(self.norm1.forward(xa.clone()));
-        let qkv_host = qkv.clone().try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()?;
+        let qkv_host = read_f32(qkv.clone())?;
         let (out, saved) = match core {
             Some(core) if core.dims() == [n, c] => {
-                let out = core.try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()?;
-                (out, self.attn.host_core_saved(&qkv_host, &index)?)
+                (read_f32(core)?, self.attn.host_core_saved(&qkv_host, &index)?)
             }
             _ => profile::scope(|| "step.host_attn_core.forward".to_string(), || self.attn.host_core_forward(&qkv_host, &index))?,
         };
@@ -198,7 +197,7 @@ impl Block {
         let g_residual = xb.grad_remove(&mut grads);
         let g_out = out.grad_remove(&mut grads);
         let g_out = match g_out {
-            Some(g) => g.try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()?,
+            Some(g) => read_f32(g)?,
             None => vec![0.0; n * c],
         };
         let d_qkv = profile::scope(|| "step.host_attn_core.backward".to_string(), || self.attn.host_core_backward(&saved, &g_out, &index))?;

@@ -21,6 +21,7 @@
 
 use rayon::prelude::*;
 
+use crate::ops::read_indices;
 use crate::prepared::{ConvIndex, NUM_TAPS};
 
 /// Pairs per GEMM block (bounds the gathered buffers: `PAIR_BLOCK (2 C_in + C_out)` floats).
@@ -43,14 +44,10 @@ impl HostConvTables {
     /// Reads the tables of `index` back; `None` when they cannot be read or are inconsistent
     /// (an index out of range, tables of different lengths).
     pub fn read(index: &ConvIndex) -> Option<Self> {
-        let ints = |t: &burn::tensor::Tensor<1, burn::tensor::Int>| -> Option<Vec<usize>> {
-            let v = t.clone().try_into_data().ok()?.convert::<i64>().try_to_vec::<i64>().ok()?;
-            v.into_iter().map(|x| usize::try_from(x).ok()).collect()
-        };
         let (n, g) = (index.num_tokens, index.num_groups);
         let group_entries = match (&index.group_members, &index.group_ids) {
             (Some(m), Some(ids)) if g > 0 => {
-                let (m, ids) = (ints(m)?, ints(ids)?);
+                let (m, ids) = (read_indices(m)?, read_indices(ids)?);
                 if m.len() != ids.len() || m.iter().any(|&t| t >= n) || ids.iter().any(|&i| i >= g) {
                     return None;
                 }
@@ -61,7 +58,7 @@ impl HostConvTables {
         };
         let mut taps = Vec::with_capacity(index.taps.len());
         for t in &index.taps {
-            let (source, target) = (ints(&t.source)?, ints(&t.target)?);
+            let (source, target) = (read_indices(&t.source)?, read_indices(&t.target)?);
             if t.tap >= NUM_TAPS || source.len() != target.len() || source.iter().any(|&s| s >= n + g) || target.iter().any(|&r| r >= n) {
                 return None;
             }

@@ -20,6 +20,14 @@ pub fn is_cpu_device(device: &Device) -> bool {
     name.contains("Flex") || name.contains("NdArray")
 }
 
+/// The values of an index table read back to the host, `None` when the readback fails or an
+/// entry is negative (the host kernels' tables: [`crate::attention::HostAttnIndex`],
+/// [`crate::host_conv_grad::HostConvTables`]).
+pub(crate) fn read_indices(t: &Tensor<1, Int>) -> Option<Vec<usize>> {
+    let v = t.clone().try_into_data().ok()?.convert::<i64>().try_to_vec::<i64>().ok()?;
+    v.into_iter().map(|x| usize::try_from(x).ok()).collect()
+}
+
 /// `x[idx]` along rows: `[N, C]` -> `[M, C]`.
 ///
 /// On CPU backends (and for inference anywhere) this is `select`; on GPU backends under

@@ -38,7 +38,7 @@ use crate::prepared::PreparedBatch;
 use crate::recorder::Recorder;
 use crate::ops::is_cpu_device;
 use crate::profile;
-use crate::segments::{BlockPart, Op, Program, Stage};
+use crate::segments::{BlockPart, Op, Program};
 
 /// The gradients of `objective(model.forward(batch))` with respect to every parameter of
 /// `model`, computed by segment recomputation (module docs), and what `objective` returned
@@ -187,16 +187,12 @@ fn op_kind(op: Op) -> String {
         Op::Down(_) => "down".into(),
         Op::Up(_) => "up".into(),
         Op::Block { stage, part, .. } => {
-            let stage = match stage {
-                Stage::Enc(s) => format!("enc{s}"),
-                Stage::Dec(s) => format!("dec{s}"),
-            };
             let part = match part {
                 BlockPart::Cpe => "cpe",
                 BlockPart::Attn => "attn",
                 BlockPart::Mlp => "mlp",
             };
-            format!("{stage}.{part}")
+            format!("{}.{part}", stage.name())
         }
     }
 }
@@ -272,6 +268,7 @@ mod tests {
     use crate::GgptConfig;
     use crate::bench::surface_chunk;
     use crate::infer::prepare_chunks;
+    use crate::segments::Stage;
 
     /// The tests seed and draw from the shared ndarray device RNG: one at a time.
     fn rng_lock() -> std::sync::MutexGuard<'static, ()> {

@@ -37,6 +37,16 @@ pub enum Stage {
     Dec(usize),
 }
 
+impl Stage {
+    /// The stage's name in recorded keys and profiles: `enc0`..`enc4`, `dec0`..`dec3`.
+    pub fn name(self) -> String {
+        match self {
+            Stage::Enc(s) => format!("enc{s}"),
+            Stage::Dec(s) => format!("dec{s}"),
+        }
+    }
+}
+
 /// One third of a block (`crate::block`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum BlockPart {
@@ -198,10 +208,8 @@ impl Ggpt {
             }
             Op::Block { stage, block, part } => {
                 let (blocks, level) = self.stage_blocks(batch, stage);
-                let (prefix, last_name) = match stage {
-                    Stage::Enc(s) => (format!("enc{s}"), format!("enc{s}.out")),
-                    Stage::Dec(s) => (format!("dec{s}"), if s == 0 { "backbone.out".to_string() } else { format!("dec{s}.out") }),
-                };
+                let prefix = stage.name();
+                let last_name = if stage == Stage::Dec(0) { "backbone.out".to_string() } else { format!("{prefix}.out") };
                 let b = &blocks[block];
                 let name = format!("{prefix}.block{block}");
                 let (out, core) = match part {
