@@ -7,16 +7,18 @@
 //! x3 = x2 + DropPath(MLP(LN2(x2)))  MLP(u) = Linear_{4C->C}(GELU(Linear_{C->4C}(u)))
 //! ```
 
-use burn::module::Module;
+use burn::module::{Module, ParamId};
 use burn::nn::{LayerNorm, Linear, LinearConfig};
-use burn::tensor::{Device, Gradients, Tensor, TensorData};
+use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::attention::{HostAttnIndex, WindowAttention};
 use crate::config::GgptConfig;
 use crate::drop_path::DropPath;
 use crate::gelu::gelu;
 use crate::host_conv_grad::{HostConvTables, subm_conv_backward};
-use crate::norm::layer_norm;
+use crate::host_dense::{HostLinear, HostNorm, LinearGrads, NormRows, read_values, scale_rows};
+use crate::host_mlp;
+use crate::norm::{layer_norm, layer_norm_forward};
 use crate::ops::map_row_blocks;
 use crate::prepared::PreparedLevel;
 use crate::profile;
@@ -67,6 +69,9 @@ pub struct Block {
     pub drop_path: DropPath,
     /// Order row used by this block (`i mod 4`).
     pub order_row: usize,
+    /// Epsilon of the block's LayerNorms (`GgptConfig::ln_eps`; Burn's `LayerNorm` does not
+    /// expose its own), for the host backward ([`Self::mlp_part_backward`]).
+    pub ln_eps: f64,
 }
 
 impl Block {
@@ -87,6 +92,7 @@ impl Block {
             },
             drop_path: DropPath::new(drop),
             order_row: index % 4,
+            ln_eps: cfg.ln_eps,
         }
     }
 
@@ -102,47 +108,50 @@ impl Block {
     /// `x1 = x + CPE(x_conv)`: `x, x_conv [N, C] -> [N, C]`; records `{name}.cpe_conv_out`,
     /// `{name}.cpe_out`.
     pub fn cpe_part(&self, x: Tensor<2>, x_conv: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> Tensor<2> {
+        self.cpe_part_with_conv(x, x_conv, level, rec, name).0
+    }
+
+    /// [`Self::cpe_part`], also returning the sparse conv's output `[N, C]`, which
+    /// [`Self::cpe_part_backward`] can take instead of recomputing it.
+    pub fn cpe_part_with_conv(&self, x: Tensor<2>, x_conv: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> (Tensor<2>, Tensor<2>) {
         let stage = stage_of(name);
         let conv = profile::scope(|| format!("{stage}.conv"), || self.cpe.conv.forward(x_conv, &level.conv));
         rec.record(|| format!("{name}.cpe_conv_out"), &conv);
-        let cpe = profile::scope(|| format!("{stage}.cpe_linear_ln"), || self.cpe.norm.forward(self.cpe.linear.forward(conv)));
+        let cpe = profile::scope(|| format!("{stage}.cpe_linear_ln"), || layer_norm_forward(&self.cpe.norm, self.ln_eps, self.cpe.linear.forward(conv.clone())));
         rec.record(|| format!("{name}.cpe_out"), &cpe);
-        x + cpe
+        (x + cpe, conv)
     }
 
-    /// Backward of [`Self::cpe_part`] with the sparse conv differentiated on the host (CPU
-    /// training, `crate::recompute`, [`crate::host_conv_grad`]): `x, x_conv [N, C]` (the segment
-    /// inputs, no graph) and `g_x1 [N, C]` (the gradient of its output). The graph holds only
-    /// the CPE Linear and LayerNorm on the conv output; their parameter gradients go to
-    /// `collect`. `None` (nothing collected) when a host readback fails or the tables are
-    /// inconsistent: the caller then differentiates [`Self::cpe_part`] itself.
-    pub fn cpe_part_backward(&self, x: Tensor<2>, x_conv: Tensor<2>, g_x1: Tensor<2>, level: &PreparedLevel, collect: &mut dyn FnMut(&mut Gradients)) -> Option<CpeGrads> {
+    /// Backward of [`Self::cpe_part`] on the host (CPU training, `crate::recompute`,
+    /// [`crate::host_conv_grad`], [`crate::host_dense`]): `x_conv [N, C]` (the conv input, no
+    /// graph) and `g_x1 [N, C]` (the gradient of the segment output). `conv`, when given, is
+    /// the conv output the forward computed ([`Self::cpe_part_with_conv`]); otherwise it is
+    /// recomputed. No autodiff graph is built. [`PartGrads::inputs`] holds the gradients of
+    /// `x` and `x_conv`. `None` when a host readback fails or the tables are inconsistent: the
+    /// caller then differentiates [`Self::cpe_part`] itself.
+    pub fn cpe_part_backward(&self, x_conv: Tensor<2>, conv: Option<Tensor<2>>, g_x1: Tensor<2>, level: &PreparedLevel) -> Option<PartGrads> {
         let [n, c_in] = x_conv.dims();
-        let c_out = self.cpe.conv.bias.val().dims()[0];
-        let device = x.device();
+        let [c_out, k0, k1, k2, _] = self.cpe.conv.weight.dims();
+        let device = x_conv.device();
         let tables = HostConvTables::read(&level.conv)?;
-        // the conv output without a graph (frozen weights), then a leaf for the rest
-        let conv = self.cpe.conv.clone().no_grad().forward(x_conv.clone().autodiff(), &level.conv);
-        let y = conv.require_grad();
-        let xb = x.autodiff().require_grad();
-        let x1 = xb.clone() + self.cpe.norm.forward(self.cpe.linear.forward(y.clone()));
-        let mut grads = (x1 * g_x1.autodiff()).sum().backward();
-        let g_x = xb.grad_remove(&mut grads).unwrap_or_else(|| Tensor::zeros([n, c_in], &device));
-        let g_y = match y.grad_remove(&mut grads) {
-            Some(g) => read_f32(g)?,
-            None => vec![0.0; n * c_out],
+        let y = match conv {
+            Some(y) if y.dims() == [n, c_out] => read_values(y)?,
+            _ => read_values(self.cpe.conv.clone().no_grad().forward(x_conv.clone().autodiff(), &level.conv))?,
         };
-        let weight = read_f32(self.cpe.conv.weight.val())?;
-        let d = profile::scope(|| "step.host_conv.backward".to_string(), || subm_conv_backward(&read_f32(x_conv)?, &g_y, &weight, c_in, c_out, &tables))?;
-        // only now, so that a `None` above collected nothing
-        collect(&mut grads);
-        let [_, k0, k1, k2, _] = self.cpe.conv.weight.dims();
-        Some(CpeGrads {
-            x: g_x,
-            x_conv: Tensor::from_data(TensorData::new(d.input, [n, c_in]), &device),
-            conv_weight: Tensor::from_data(TensorData::new(d.weight, [c_out, k0, k1, k2, c_in]), &device),
-            conv_bias: Tensor::from_data(TensorData::new(d.bias, [c_out]), &device),
-        })
+        let (linear, norm) = (HostLinear::read(&self.cpe.linear)?, HostNorm::read(&self.cpe.norm, self.ln_eps)?);
+        let g = read_values(g_x1.clone())?;
+        // x1 = x + LN(y W + b): back through the LayerNorm and the Linear, then the conv
+        let (ln, _) = norm.forward(&linear.forward(&y));
+        let mut grads = PartGrads::default();
+        let g_z = grads.norm_backward(&self.cpe.norm, &ln, &norm, &g, None, &device);
+        let d_lin = linear.backward(&y, &g_z);
+        grads.linear(&self.cpe.linear, &d_lin, &device);
+        let weight = read_values(self.cpe.conv.weight.val())?;
+        let d = profile::scope(|| "step.host_conv.backward".to_string(), || subm_conv_backward(&read_values(x_conv)?, &d_lin.input, &weight, c_in, c_out, &tables))?;
+        grads.kernels.push((self.cpe.conv.weight.id, Tensor::from_data(TensorData::new(d.weight, [c_out, k0, k1, k2, c_in]), &device)));
+        grads.vectors.push((self.cpe.conv.bias.id, Tensor::from_data(TensorData::new(d.bias, [c_out]), &device)));
+        grads.inputs = vec![g_x1, Tensor::from_data(TensorData::new(d.input, [n, c_in]), &device)];
+        Some(grads)
     }
 
     /// `x2 = x1 + DropPath(Attn(LN1(x1)))`: `x1 [N, C] -> [N, C]`; records `{name}.attn_out`.
@@ -155,64 +164,64 @@ impl Block {
     /// take instead of recomputing it.
     pub fn attn_part_with_core(&self, x1: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> (Tensor<2>, Tensor<2>) {
         let stage = stage_of(name);
-        let normed = profile::scope(|| format!("{stage}.ln1"), || self.norm1.forward(x1.clone()));
+        let normed = profile::scope(|| format!("{stage}.ln1"), || layer_norm_forward(&self.norm1, self.ln_eps, x1.clone()));
         let core = self.attn.core_profiled(normed, &level.attn[self.order_row], stage);
         let attn = self.attn.project(core.clone(), stage);
         rec.record(|| format!("{name}.attn_out"), &attn);
         (x1 + self.drop_path.forward(attn), core)
     }
 
-    /// Backward of [`Self::attn_part`] with the attention core on the host (CPU training,
-    /// `crate::recompute`): `x1 [N, C]` (the segment input, no graph) and `g_x2 [N, C]` (the
-    /// gradient of its output) -> the gradient of `x1`. The parameter gradients go to
-    /// `collect`, once per partial backward. The graphs hold `LN1`, `qkv [N, 3C]` and `proj`,
-    /// never a score tensor. `None` (nothing collected) when a host readback fails or the
-    /// tables are inconsistent: the caller then differentiates [`Self::attn_part`] itself.
+    /// Backward of [`Self::attn_part`] on the host (CPU training, `crate::recompute`,
+    /// [`crate::host_attention_grad`], [`crate::host_dense`]): `x1 [N, C]` (the segment input,
+    /// no graph) and `g_x2 [N, C]` (the gradient of its output) -> [`PartGrads`] with the
+    /// gradient of `x1`. No autodiff graph is built, and no score tensor. `None` when a host
+    /// readback fails or the tables are inconsistent: the caller then differentiates
+    /// [`Self::attn_part`] itself.
     ///
     /// `core`, when given, is the attention before its projection that the forward computed
     /// ([`Self::attn_part_with_core`], `[N, C]`): the backward then skips recomputing it.
     ///
     /// The drop-path mask is drawn once, as by [`Self::attn_part`] (the caller restores the
     /// mask RNG before).
-    pub fn attn_part_backward(&self, x1: Tensor<2>, g_x2: Tensor<2>, level: &PreparedLevel, core: Option<Tensor<2>>, collect: &mut dyn FnMut(&mut Gradients)) -> Option<Tensor<2>> {
+    pub fn attn_part_backward(&self, x1: Tensor<2>, g_x2: Tensor<2>, level: &PreparedLevel, core: Option<Tensor<2>>) -> Option<PartGrads> {
         let [n, c] = x1.dims();
         let device = x1.device();
         let index = HostAttnIndex::read(&level.attn[self.order_row], n)?;
-        // qkv of every token under autodiff; its values for the host core
-        let xa = x1.clone().autodiff().require_grad();
-        let qkv = self.attn.qkv.forward(self.norm1.forward(xa.clone()));
-        let qkv_host = read_f32(qkv.clone())?;
+        let row_scale = self.drop_path_scale(n, &device)?;
+        let (norm, qkv_linear, proj) = (HostNorm::read(&self.norm1, self.ln_eps)?, HostLinear::read(&self.attn.qkv)?, HostLinear::read(&self.attn.proj)?);
+        let g = read_values(g_x2)?;
+        // x2 = x1 + s ⊙ proj(core(qkv(LN1(x1))))
+        let (ln, u) = norm.forward(&read_values(x1)?);
+        let qkv = qkv_linear.forward(&u);
         let (out, saved) = match core {
-            Some(core) if core.dims() == [n, c] => {
-                (read_f32(core)?, self.attn.host_core_saved(&qkv_host, &index)?)
-            }
-            _ => profile::scope(|| "step.host_attn_core.forward".to_string(), || self.attn.host_core_forward(&qkv_host, &index))?,
+            Some(core) if core.dims() == [n, c] => (read_values(core)?, self.attn.host_core_saved(&qkv, &index)?),
+            _ => profile::scope(|| "step.host_attn_core.forward".to_string(), || self.attn.host_core_forward(&qkv, &index))?,
         };
-        drop(qkv_host);
-        // y = x1 + DropPath(proj(out)): gradients of x1 (residual), proj and out
-        let out = Tensor::<2>::from_data(TensorData::new(out, [n, c]), &device).autodiff().require_grad();
-        let xb = x1.autodiff().require_grad();
-        let y = xb.clone() + self.drop_path.forward(self.attn.proj.forward(out.clone()));
-        let mut grads = (y * g_x2.autodiff()).sum().backward();
-        let g_residual = xb.grad_remove(&mut grads);
-        let g_out = out.grad_remove(&mut grads);
-        let g_out = match g_out {
-            Some(g) => read_f32(g)?,
-            None => vec![0.0; n * c],
-        };
-        let d_qkv = profile::scope(|| "step.host_attn_core.backward".to_string(), || self.attn.host_core_backward(&saved, &g_out, &index))?;
+        drop(qkv);
+        let mut g_y = vec![0.0; n * c];
+        scale_rows(&g, row_scale.as_deref(), c, &mut g_y);
+        let mut grads = PartGrads::default();
+        let d_proj = proj.backward(&out, &g_y);
+        drop((out, g_y));
+        grads.linear(&self.attn.proj, &d_proj, &device);
+        let d_qkv = profile::scope(|| "step.host_attn_core.backward".to_string(), || self.attn.host_core_backward(&saved, &d_proj.input, &index))?;
         drop(saved);
-        let d_qkv = Tensor::<2>::from_data(TensorData::new(d_qkv, [n, 3 * c]), &device).autodiff();
-        let mut grads_ln = (qkv * d_qkv).sum().backward();
-        let g_ln = xa.grad_remove(&mut grads_ln);
-        // only now, so that a `None` above collected nothing
-        collect(&mut grads);
-        collect(&mut grads_ln);
-        Some(match (g_residual, g_ln) {
-            (Some(a), Some(b)) => a + b,
-            (Some(a), None) | (None, Some(a)) => a,
-            (None, None) => Tensor::zeros([n, c], &device),
-        })
+        let d_lin = qkv_linear.backward(&u, &d_qkv);
+        grads.linear(&self.attn.qkv, &d_lin, &device);
+        let g_x1 = grads.norm_backward(&self.norm1, &ln, &norm, &d_lin.input, Some(&g), &device);
+        grads.inputs = vec![Tensor::from_data(TensorData::new(g_x1, [n, c]), &device)];
+        Some(grads)
+    }
+
+    /// The drop-path scale of this block's next mask, per row `[N]` (`0` or `1 / (1 - p)`),
+    /// drawn as [`DropPath::forward`] draws it (one draw per row); `Some(None)` when the drop
+    /// path is inactive (scale 1), `None` when the readback fails.
+    fn drop_path_scale(&self, n: usize, device: &Device) -> Option<Option<Vec<f32>>> {
+        if !(self.drop_path.prob > 0.0 && self.drop_path.training.is_enabled()) {
+            return Some(None);
+        }
+        let ones = Tensor::<2>::ones([n, 1], device).autodiff();
+        read_values(self.drop_path.forward(ones)).map(Some)
     }
 
     /// `x3 = x2 + DropPath(MLP(LN2(x2)))`: `x2 [N, C] -> [N, C]`; records `{name}.mlp_out`,
@@ -222,31 +231,93 @@ impl Block {
         let hidden = self.mlp.fc1.weight.dims()[1];
         let mlp = profile::scope(
             || format!("{stage}.ln2_mlp"),
-            || map_row_blocks(x2.clone(), hidden, |rows| self.mlp.forward(self.norm2.forward(rows))),
+            || map_row_blocks(x2.clone(), hidden, |rows| self.mlp.forward(layer_norm_forward(&self.norm2, self.ln_eps, rows))),
         );
         rec.record(|| format!("{name}.mlp_out"), &mlp);
         let x3 = profile::scope(|| format!("{stage}.residual"), || x2 + self.drop_path.forward(mlp));
         rec.record(|| format!("{name}.out"), &x3);
         x3
     }
+
+    /// Backward of [`Self::mlp_part`] on the host (CPU training, `crate::recompute`,
+    /// [`crate::host_mlp`]): `x2 [N, C]` (the segment input, no graph) and `g_x3 [N, C]` (the
+    /// gradient of its output) -> [`PartGrads`] with the gradient of `x2`. No autodiff graph
+    /// is built. The drop-path mask is drawn once, as by [`Self::mlp_part`] (the caller
+    /// restores the mask RNG before). `None` when a readback fails: the caller then
+    /// differentiates [`Self::mlp_part`] itself.
+    pub fn mlp_part_backward(&self, x2: Tensor<2>, g_x3: Tensor<2>) -> Option<PartGrads> {
+        let [n, c] = x2.dims();
+        let device = x2.device();
+        let row_scale = self.drop_path_scale(n, &device)?;
+        let norm = HostNorm::read(&self.norm2, self.ln_eps)?;
+        let (fc1, fc2) = (HostLinear::read(&self.mlp.fc1)?, HostLinear::read(&self.mlp.fc2)?);
+        let weights = host_mlp::MlpWeights {
+            channels: c,
+            hidden: fc1.d_out,
+            ln_eps: norm.eps,
+            ln_gamma: &norm.gamma,
+            ln_beta: norm.beta.as_deref(),
+            fc1_weight: &fc1.weight,
+            fc1_bias: fc1.bias.as_deref(),
+            fc2_weight: &fc2.weight,
+            fc2_bias: fc2.bias.as_deref(),
+        };
+        let d = profile::scope(
+            || "step.host_mlp.backward".to_string(),
+            || host_mlp::mlp_backward(&read_values(x2)?, &read_values(g_x3)?, row_scale.as_deref(), &weights),
+        )?;
+        let mut grads = PartGrads::default();
+        grads.norm(&self.norm2, d.ln_gamma, d.ln_beta, &device);
+        grads.linear(&self.mlp.fc1, &LinearGrads { weight: d.fc1_weight, bias: d.fc1_bias, input: Vec::new() }, &device);
+        grads.linear(&self.mlp.fc2, &LinearGrads { weight: d.fc2_weight, bias: d.fc2_bias, input: Vec::new() }, &device);
+        grads.inputs = vec![Tensor::from_data(TensorData::new(d.input, [n, c]), &device)];
+        Some(grads)
+    }
 }
 
-/// Gradients of [`Block::cpe_part_backward`] (on the device of its inputs, no graph).
-#[derive(Debug, Clone)]
-pub struct CpeGrads {
-    /// Of the residual input `x` `[N, C]`.
-    pub x: Tensor<2>,
-    /// Of the conv input `x_conv` `[N, C]`.
-    pub x_conv: Tensor<2>,
-    /// Of `cpe.conv.weight` `[C_out, 3, 3, 3, C_in]`.
-    pub conv_weight: Tensor<5>,
-    /// Of `cpe.conv.bias` `[C_out]`.
-    pub conv_bias: Tensor<1>,
+/// Gradients of a block part's host backward ([`Block::cpe_part_backward`],
+/// [`Block::attn_part_backward`], [`Block::mlp_part_backward`]), on the device of its inputs,
+/// no graph.
+#[derive(Debug, Clone, Default)]
+pub struct PartGrads {
+    /// Of the part's inputs, in the order of its segment inputs (`[N, C]` each).
+    pub inputs: Vec<Tensor<2>>,
+    /// Of its rank-1 parameters (LayerNorm γ, β, biases).
+    pub vectors: Vec<(ParamId, Tensor<1>)>,
+    /// Of its Linear weights.
+    pub matrices: Vec<(ParamId, Tensor<2>)>,
+    /// Of its sparse-conv weights.
+    pub kernels: Vec<(ParamId, Tensor<5>)>,
 }
 
-/// The f32 values of `t`, row-major; `None` when they cannot be read back.
-fn read_f32<const D: usize>(t: Tensor<D>) -> Option<Vec<f32>> {
-    t.try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()
+impl PartGrads {
+    /// Adds the gradients of `linear` (weight and bias).
+    fn linear(&mut self, linear: &Linear, d: &LinearGrads, device: &Device) {
+        let [d_in, d_out] = linear.weight.dims();
+        self.matrices.push((linear.weight.id, Tensor::from_data(TensorData::new(d.weight.clone(), [d_in, d_out]), device)));
+        if let Some(b) = &linear.bias {
+            self.vectors.push((b.id, Tensor::from_data(TensorData::new(d.bias.clone(), [d_out]), device)));
+        }
+    }
+
+    /// Adds the gradients of `norm` (γ, β).
+    fn norm(&mut self, norm: &LayerNorm, d_gamma: Vec<f32>, d_beta: Vec<f32>, device: &Device) {
+        let c = d_gamma.len();
+        self.vectors.push((norm.gamma.id, Tensor::from_data(TensorData::new(d_gamma, [c]), device)));
+        if let Some(b) = &norm.beta {
+            self.vectors.push((b.id, Tensor::from_data(TensorData::new(d_beta, [c]), device)));
+        }
+    }
+
+    /// The LayerNorm backward ([`NormRows::backward`]): adds the gradients of `norm` and
+    /// returns `residual + d x`.
+    fn norm_backward(&mut self, norm: &LayerNorm, state: &NormRows, host: &HostNorm, g_u: &[f32], residual: Option<&[f32]>, device: &Device) -> Vec<f32> {
+        let c = host.gamma.len();
+        let (mut d_gamma, mut d_beta) = (vec![0.0; c], vec![0.0; c]);
+        let dx = state.backward(g_u, &host.gamma, residual, &mut d_gamma, &mut d_beta);
+        self.norm(norm, d_gamma, d_beta, device);
+        dx
+    }
 }
 
 /// Profile key of a block name: the stage (`enc0`, `dec3`, ...).

@@ -4,13 +4,23 @@
 //! and wgpu. Composing the activation from `erf` (whose autodiff backward is the exact
 //! `2/sqrt(pi) exp(-x^2)`) gives PyTorch's exact forward and backward.
 
-use burn::tensor::Tensor;
+use burn::tensor::{Tensor, TensorData};
+
+use crate::host_mlp::gelu_in_place;
+use crate::ops::is_cpu_device;
 
 /// `GELU(x) = 0.5 x (1 + erf(x / sqrt(2)))`, element-wise, any shape.
 ///
 /// Gradient (through autodiff of the composition):
 /// `0.5 (1 + erf(x/sqrt 2)) + x exp(-x^2/2) / sqrt(2 pi)`.
+///
+/// An untracked tensor on a CPU device is computed on the host over the rayon pool
+/// ([`crate::host_mlp::gelu_in_place`], the same f32 operations): Burn's element-wise ops run
+/// on one thread there.
 pub fn gelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
+    if let Some(y) = host_gelu(&x) {
+        return y;
+    }
     let cdf = x
         .clone()
         .mul_scalar(std::f64::consts::FRAC_1_SQRT_2)
@@ -20,10 +30,22 @@ pub fn gelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
     x * cdf
 }
 
+/// `GELU(x)` on the host for an untracked `x` on a CPU device; `None` otherwise (or when the
+/// readback fails).
+fn host_gelu<const D: usize>(x: &Tensor<D>) -> Option<Tensor<D>> {
+    let device = x.device();
+    if !is_cpu_device(&device) || x.is_tracked() {
+        return None;
+    }
+    let mut values = x.clone().try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()?;
+    gelu_in_place(&mut values);
+    Some(Tensor::from_data(TensorData::new(values, x.dims()), &device))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use burn::tensor::{Device, TensorData};
+    use burn::tensor::Device;
 
     /// erf in f64 (Abramowitz-Stegun 7.1.26 is too coarse; use a series / continued fraction).
     fn erf64(x: f64) -> f64 {

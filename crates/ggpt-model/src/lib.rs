@@ -20,6 +20,8 @@ pub mod head;
 pub mod host_attention;
 pub mod host_attention_grad;
 pub mod host_conv_grad;
+mod host_dense;
+pub mod host_mlp;
 pub mod infer;
 pub mod linear_bn;
 pub mod model;

@@ -20,10 +20,11 @@
 //!   it is left where the forward left it, as after a plain step. An unseeded thread (device
 //!   RNG) is seeded for the step from one draw of the device RNG.
 //!
-//! On CPU devices the attention cores and the sparse convs are differentiated on the host
-//! ([`crate::block::Block::attn_part_backward`], [`crate::block::Block::cpe_part_backward`]);
-//! the forward also keeps the attention before its projection (`[N, C]` per attention block),
-//! so that the backward does not recompute it.
+//! On CPU devices the attention cores, the sparse convs and the whole MLP branches are
+//! differentiated on the host ([`crate::block::Block::attn_part_backward`],
+//! [`crate::block::Block::cpe_part_backward`], [`crate::block::Block::mlp_part_backward`]);
+//! the forward also keeps the attention before its projection and the sparse conv's output
+//! (`[N, C]` per attention and CPE part), so that the backward does not recompute them.
 //!
 //! Cost: one extra forward per step (no graph), against a graph bounded by the largest segment.
 
@@ -84,15 +85,15 @@ fn run<T, E>(
     let frozen = model.clone().no_grad();
     let mut values: Vec<Option<Tensor<2>>> = vec![None; program.num_slots];
     let mut rng_before = Vec::with_capacity(program.segments.len());
-    // per segment, the attention before its projection (attention parts on CPU devices, where
-    // the host backward takes it instead of recomputing the core)
-    let mut attn_cores: Vec<Option<Tensor<2>>> = vec![None; program.segments.len()];
+    // per segment, what its host backward takes instead of recomputing it (CPU devices: the
+    // attention before its projection, the sparse conv's output)
+    let mut kept: Vec<Option<Tensor<2>>> = vec![None; program.segments.len()];
     for (k, seg) in program.segments.iter().enumerate() {
         rng_before.push(drop_path::mask_rng_state());
         let args: Vec<Tensor<2>> = seg.inputs.iter().map(|&i| slot(&values, i, &device).autodiff()).collect();
         let (outs, core) = profile::scope(|| format!("step.forward.{}", op_kind(seg.op)), || frozen.run_segment_keeping_core(batch, seg.op, &args, &mut rec));
         if host_kernels {
-            attn_cores[k] = core.map(Tensor::without_autodiff);
+            kept[k] = core.map(Tensor::without_autodiff);
         }
         for (&o, t) in seg.outputs.iter().zip(outs) {
             values[o] = Some(t.without_autodiff());
@@ -136,30 +137,27 @@ fn run<T, E>(
             .filter_map(|i| leaves.iter().find(|(j, _)| j == i).map(|(_, t)| t.clone()))
             .collect();
         drop_path::restore_mask_rng(&rng_before[k]);
-        if let (Op::Block { stage, block, part: BlockPart::Attn }, true, [Some(g)]) = (seg.op, host_kernels, out_grads.as_slice()) {
-            // the attention core differentiated on the host (no score tensor in any graph)
+        if let (Op::Block { stage, block, part }, true, [Some(g)]) = (seg.op, host_kernels, out_grads.as_slice()) {
+            // the block parts differentiated on the host (no graph, no score tensor, no per-tap
+            // weight slices, multi-threaded element-wise passes)
             let (blocks, level) = model.stage_blocks(batch, stage);
-            let x1 = slot(&values, seg.inputs[0], &device);
-            let mut collect = |grads: &mut Gradients| collect_param_grads(model, grads, &mut acc);
-            if let Some(g_x1) = blocks[block].attn_part_backward(x1, g.clone(), level, attn_cores[k].take(), &mut collect) {
-                add_slot_grad(&mut slot_grads, seg.inputs[0], Some(g_x1));
+            let b = &blocks[block];
+            let input = |j: usize| slot(&values, seg.inputs[j], &device);
+            let d = match part {
+                BlockPart::Cpe => b.cpe_part_backward(input(1), kept[k].take(), g.clone(), level),
+                BlockPart::Attn => b.attn_part_backward(input(0), g.clone(), level, kept[k].take()),
+                BlockPart::Mlp => b.mlp_part_backward(input(0), g.clone()),
+            };
+            if let Some(d) = d {
+                for (&i, g) in seg.inputs.iter().zip(d.inputs) {
+                    add_slot_grad(&mut slot_grads, i, Some(g));
+                }
+                d.vectors.into_iter().for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                d.matrices.into_iter().for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                d.kernels.into_iter().for_each(|(id, g)| add_param_grad(&mut acc, id, g));
                 continue;
             }
             drop_path::restore_mask_rng(&rng_before[k]);
-        }
-        if let (Op::Block { stage, block, part: BlockPart::Cpe }, true, [Some(g)]) = (seg.op, host_kernels, out_grads.as_slice()) {
-            // the sparse conv differentiated on the host (no per-tap weight slices in a graph)
-            let (blocks, level) = model.stage_blocks(batch, stage);
-            let (x, x_conv) = (slot(&values, seg.inputs[0], &device), slot(&values, seg.inputs[1], &device));
-            let mut collect = |grads: &mut Gradients| collect_param_grads(model, grads, &mut acc);
-            if let Some(d) = blocks[block].cpe_part_backward(x, x_conv, g.clone(), level, &mut collect) {
-                add_slot_grad(&mut slot_grads, seg.inputs[0], Some(d.x));
-                add_slot_grad(&mut slot_grads, seg.inputs[1], Some(d.x_conv));
-                let conv = &blocks[block].cpe.conv;
-                add_param_grad(&mut acc, conv.weight.id, d.conv_weight);
-                add_param_grad(&mut acc, conv.bias.id, d.conv_bias);
-                continue;
-            }
         }
         let outs = norm::without_running_updates(|| model.run_segment(batch, seg.op, &args, &mut rec));
         drop(args);
@@ -368,43 +366,90 @@ mod tests {
         assert_eq!(format!("{want_rng:?}"), format!("{got_rng:?}"), "the mask RNG ends where a plain forward leaves it");
     }
 
-    /// The host attention backward gives the same gradients whether it takes the attention
-    /// core kept by the forward or recomputes it.
+    /// The host backward of every block part (CPE, attention, MLP) equals autodiff of that
+    /// part, with the intermediate kept by the forward and recomputing it, with and without an
+    /// active drop path.
     #[test]
-    fn attention_backward_with_the_forward_core_equals_recomputing_it() {
+    fn host_part_backwards_equal_autodiff_of_the_part() {
         let _rng = rng_lock();
         let device = crate::device::device_from_name("ndarray").unwrap().autodiff();
         let host = device.clone().without_autodiff();
         let mut cfg = GgptConfig::tiny();
-        cfg.drop_path = 0.0;
+        cfg.drop_path = 0.3;
         host.seed(4);
         let model = Ggpt::new(&cfg, &host).fork(&device).train();
         let batch = prepare_chunks(&cfg, &[surface_chunk(300, 3)], &device).unwrap();
-        let stage = Stage::Enc(0);
+        let stage = Stage::Enc(1);
         let (blocks, level) = model.stage_blocks(&batch, stage);
-        let c = blocks[0].norm1.gamma.val().dims()[0];
-        let x1 = Tensor::<2>::random([level.num_tokens, c], Distribution::Uniform(-1.0, 1.0), &host);
-        let g = Tensor::<2>::random([level.num_tokens, c], Distribution::Uniform(-1.0, 1.0), &host);
+        let active = blocks.iter().position(|b| b.drop_path.prob > 0.0).expect("a block with drop path");
         let frozen = model.clone().no_grad();
         let (frozen_blocks, _) = frozen.stage_blocks(&batch, stage);
-        let (_, core) = frozen_blocks[0].attn_part_with_core(x1.clone().autodiff(), level, &mut Recorder::disabled(), "enc0.block0");
-        let backward = |core: Option<Tensor<2>>| {
-            let mut acc = GradientsParams::new();
-            let mut collect = |grads: &mut Gradients| collect_param_grads(&model, grads, &mut acc);
-            let g_x1 = blocks[0].attn_part_backward(x1.clone(), g.clone(), level, core, &mut collect).expect("host backward");
-            (read_tensor_f32(&g_x1, "g_x1").unwrap(), flat(&model, &acc))
-        };
-        let (kept_x1, kept) = backward(Some(core.without_autodiff()));
-        let (recomputed_x1, recomputed) = backward(None);
-        let close = |a: &[f32], b: &[f32]| {
+        let c = blocks[0].norm1.gamma.val().dims()[0];
+        let random = || Tensor::<2>::random([level.num_tokens, c], Distribution::Uniform(-1.0, 1.0), &host);
+        let (x, x_conv, g) = (random(), random(), random());
+        let close = |name: &str, a: &[f32], b: &[f32]| {
             let max = a.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-12);
-            a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-5 * max)
+            assert_eq!(a.len(), b.len(), "{name}: lengths");
+            let worst = a.iter().zip(b).fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+            assert!(worst <= 2e-5 * max, "{name}: worst difference {worst:e} of max {max:e}");
         };
-        assert!(close(&kept_x1, &recomputed_x1), "input gradients differ");
-        assert!(kept.iter().filter(|(_, v)| !v.is_empty()).count() >= 4, "qkv, proj and LN1 gradients");
-        for ((name, a), (_, b)) in kept.iter().zip(&recomputed) {
-            assert!(close(a, b), "gradient of {name} differs");
+        for block in [0, active] {
+            let b = &blocks[block];
+            let fb = &frozen_blocks[block];
+            for part in [BlockPart::Cpe, BlockPart::Attn, BlockPart::Mlp] {
+                let label = format!("block {block} {part:?}");
+                // autodiff of the part
+                drop_path::seed_drop_path(Some(9));
+                let (xa, xca) = (x.clone().autodiff().require_grad(), x_conv.clone().autodiff().require_grad());
+                let mut rec = Recorder::disabled();
+                let y = match part {
+                    BlockPart::Cpe => b.cpe_part(xa.clone(), xca.clone(), level, &mut rec, "enc1.block"),
+                    BlockPart::Attn => b.attn_part(xa.clone(), level, &mut rec, "enc1.block"),
+                    BlockPart::Mlp => b.mlp_part(xa.clone(), &mut rec, "enc1.block"),
+                };
+                let mut grads = (y * g.clone().autodiff()).sum().backward();
+                let mut want_inputs = vec![read_tensor_f32(&xa.grad_remove(&mut grads).unwrap(), "x").unwrap()];
+                if part == BlockPart::Cpe {
+                    want_inputs.push(read_tensor_f32(&xca.grad_remove(&mut grads).unwrap(), "x_conv").unwrap());
+                }
+                let mut want = GradientsParams::new();
+                collect_param_grads(&model, &mut grads, &mut want);
+                let want = flat(&model, &want);
+                // the kept intermediate, as the graph-free forward computes it
+                let kept = match part {
+                    BlockPart::Cpe => Some(fb.cpe_part_with_conv(x.clone().autodiff(), x_conv.clone().autodiff(), level, &mut rec, "enc1.block").1),
+                    BlockPart::Attn => Some(fb.attn_part_with_core(x.clone().autodiff(), level, &mut rec, "enc1.block").1),
+                    BlockPart::Mlp => None,
+                };
+                for kept in [kept.map(Tensor::without_autodiff), None] {
+                    drop_path::seed_drop_path(Some(9));
+                    let d = match part {
+                        BlockPart::Cpe => b.cpe_part_backward(x_conv.clone(), kept.clone(), g.clone(), level),
+                        BlockPart::Attn => b.attn_part_backward(x.clone(), g.clone(), level, kept.clone()),
+                        BlockPart::Mlp => b.mlp_part_backward(x.clone(), g.clone()),
+                    }
+                    .expect("host backward");
+                    assert_eq!(d.inputs.len(), want_inputs.len(), "{label}");
+                    for (w, got) in want_inputs.iter().zip(&d.inputs) {
+                        close(&format!("{label} input"), w, &read_tensor_f32(got, "d input").unwrap());
+                    }
+                    let mut acc = GradientsParams::new();
+                    d.vectors.into_iter().for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                    d.matrices.into_iter().for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                    d.kernels.into_iter().for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                    let got = flat(&model, &acc);
+                    let mut compared = 0;
+                    for ((name, w), (_, got)) in want.iter().zip(&got) {
+                        if !w.is_empty() {
+                            close(&format!("{label} {name}"), w, got);
+                            compared += 1;
+                        }
+                    }
+                    assert!(compared >= 4, "{label}: {compared} parameter gradients");
+                }
+            }
         }
+        drop_path::seed_drop_path(None);
     }
 
     /// An objective error aborts before any backward and leaves the caller's RNG state.

@@ -180,8 +180,10 @@ impl Ggpt {
         self.run_segment_keeping_core(batch, op, inputs, rec).0
     }
 
-    /// [`Self::run_segment`], also returning for an attention part ([`BlockPart::Attn`]) the
-    /// attention before its output projection `[N, C]` ([`Block::attn_part_with_core`]).
+    /// [`Self::run_segment`], also returning the intermediate that the host backward of a
+    /// block part takes instead of recomputing it: for an attention part ([`BlockPart::Attn`])
+    /// the attention before its output projection ([`Block::attn_part_with_core`]), for a CPE
+    /// part the sparse conv's output ([`Block::cpe_part_with_conv`]), both `[N, C]`.
     pub fn run_segment_keeping_core(&self, batch: &PreparedBatch, op: Op, inputs: &[Tensor<2>], rec: &mut Recorder) -> (Vec<Tensor<2>>, Option<Tensor<2>>) {
         let arg = |i: usize| inputs[i].clone();
         match op {
@@ -213,7 +215,10 @@ impl Ggpt {
                 let b = &blocks[block];
                 let name = format!("{prefix}.block{block}");
                 let (out, core) = match part {
-                    BlockPart::Cpe => (b.cpe_part(arg(0), arg(1), level, rec, &name), None),
+                    BlockPart::Cpe => {
+                        let (out, conv) = b.cpe_part_with_conv(arg(0), arg(1), level, rec, &name);
+                        (out, Some(conv))
+                    }
                     BlockPart::Attn => {
                         let (out, core) = b.attn_part_with_core(arg(0), level, rec, &name);
                         (out, Some(core))
