@@ -141,7 +141,7 @@ impl Block {
         let (linear, norm) = (HostLinear::read(&self.cpe.linear)?, HostNorm::read(&self.cpe.norm, self.ln_eps)?);
         let g = read_values(g_x1.clone())?;
         // x1 = x + LN(y W + b): back through the LayerNorm and the Linear, then the conv
-        let (ln, _) = norm.forward(&linear.forward(&y));
+        let ln = norm.state(&linear.forward(&y));
         let mut grads = PartGrads::default();
         let g_z = grads.norm_backward(&self.cpe.norm, &ln, &norm, &g, None, &device);
         let d_lin = linear.backward(&y, &g_z);
@@ -251,25 +251,14 @@ impl Block {
         let row_scale = self.drop_path_scale(n, &device)?;
         let norm = HostNorm::read(&self.norm2, self.ln_eps)?;
         let (fc1, fc2) = (HostLinear::read(&self.mlp.fc1)?, HostLinear::read(&self.mlp.fc2)?);
-        let weights = host_mlp::MlpWeights {
-            channels: c,
-            hidden: fc1.d_out,
-            ln_eps: norm.eps,
-            ln_gamma: &norm.gamma,
-            ln_beta: norm.beta.as_deref(),
-            fc1_weight: &fc1.weight,
-            fc1_bias: fc1.bias.as_deref(),
-            fc2_weight: &fc2.weight,
-            fc2_bias: fc2.bias.as_deref(),
-        };
         let d = profile::scope(
             || "step.host_mlp.backward".to_string(),
-            || host_mlp::mlp_backward(&read_values(x2)?, &read_values(g_x3)?, row_scale.as_deref(), &weights),
+            || host_mlp::mlp_backward(&read_values(x2)?, &read_values(g_x3)?, row_scale.as_deref(), &norm, &fc1, &fc2),
         )?;
         let mut grads = PartGrads::default();
         grads.norm(&self.norm2, d.ln_gamma, d.ln_beta, &device);
-        grads.linear(&self.mlp.fc1, &LinearGrads { weight: d.fc1_weight, bias: d.fc1_bias, input: Vec::new() }, &device);
-        grads.linear(&self.mlp.fc2, &LinearGrads { weight: d.fc2_weight, bias: d.fc2_bias, input: Vec::new() }, &device);
+        grads.linear(&self.mlp.fc1, &d.fc1, &device);
+        grads.linear(&self.mlp.fc2, &d.fc2, &device);
         grads.inputs = vec![Tensor::from_data(TensorData::new(d.input, [n, c]), &device)];
         Some(grads)
     }

@@ -6,6 +6,7 @@
 
 use burn::tensor::{Tensor, TensorData};
 
+use crate::host_dense::read_values;
 use crate::host_mlp::gelu_in_place;
 use crate::ops::is_cpu_device;
 
@@ -37,7 +38,7 @@ fn host_gelu<const D: usize>(x: &Tensor<D>) -> Option<Tensor<D>> {
     if !is_cpu_device(&device) || x.is_tracked() {
         return None;
     }
-    let mut values = x.clone().try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()?;
+    let mut values = read_values(x.clone())?;
     gelu_in_place(&mut values);
     Some(Tensor::from_data(TensorData::new(values, x.dims()), &device))
 }

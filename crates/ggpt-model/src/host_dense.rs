@@ -22,13 +22,21 @@ pub(crate) struct NormRows {
 }
 
 impl NormRows {
+    /// The kept state of `LN(x)` for `x [rows, C]` (biased variance), without its output:
+    /// for a LayerNorm whose output the caller does not need.
+    pub fn of(x: &[f32], channels: usize, eps: f32) -> Self {
+        let c = channels.max(1);
+        let mut state = Self { xhat: vec![0.0; x.len()], rstd: vec![0.0; x.len() / c] };
+        normalize_rows(x, c, eps, &mut state.xhat, &mut state.rstd);
+        state
+    }
+
     /// `LN(x)` of `x [rows, C]` (biased variance, `C = gamma.len()`): the kept state and
     /// `u = xhat γ + β`.
     pub fn forward(x: &[f32], gamma: &[f32], beta: Option<&[f32]>, eps: f32) -> (Self, Vec<f32>) {
-        let c = gamma.len().max(1);
-        let mut state = Self { xhat: vec![0.0; x.len()], rstd: vec![0.0; x.len() / c] };
+        let state = Self::of(x, gamma.len(), eps);
         let mut u = vec![0.0; x.len()];
-        layer_norm_rows(x, gamma, beta, eps, &mut state.xhat, &mut state.rstd, &mut u);
+        affine_rows(&state.xhat, gamma, beta, &mut u);
         (state, u)
     }
 
@@ -41,25 +49,38 @@ impl NormRows {
     }
 }
 
-/// Row-wise LayerNorm of `x [rows, C]` (biased variance): `xhat`, `rstd [rows]` and
-/// `u = xhat γ + β`.
-pub(crate) fn layer_norm_rows(x: &[f32], gamma: &[f32], beta: Option<&[f32]>, eps: f32, xhat: &mut [f32], rstd: &mut [f32], u: &mut [f32]) {
-    let c = gamma.len();
-    x.par_chunks(ROWS_PER_TASK * c)
-        .zip(xhat.par_chunks_mut(ROWS_PER_TASK * c))
-        .zip(rstd.par_chunks_mut(ROWS_PER_TASK))
-        .zip(u.par_chunks_mut(ROWS_PER_TASK * c))
-        .for_each(|(((x, xh), rs), u)| {
-            for (((x, xh), r), u) in x.chunks(c).zip(xh.chunks_mut(c)).zip(rs.iter_mut()).zip(u.chunks_mut(c)) {
-                let mean = x.iter().sum::<f32>() / c as f32;
-                let var = x.iter().map(|&v| (v - mean) * (v - mean)).sum::<f32>() / c as f32;
-                *r = 1.0 / (var + eps).sqrt();
-                for (i, ((xh, u), &v)) in xh.iter_mut().zip(u.iter_mut()).zip(x).enumerate() {
-                    *xh = (v - mean) * *r;
-                    *u = *xh * gamma[i] + beta.map_or(0.0, |b| b[i]);
-                }
+/// Row-wise normalisation of `x [rows, C]` (biased variance): `xhat = (x - mean) rstd` and
+/// `rstd = 1 / sqrt(var + eps)` `[rows]`.
+fn normalize_rows(x: &[f32], c: usize, eps: f32, xhat: &mut [f32], rstd: &mut [f32]) {
+    x.par_chunks(ROWS_PER_TASK * c).zip(xhat.par_chunks_mut(ROWS_PER_TASK * c)).zip(rstd.par_chunks_mut(ROWS_PER_TASK)).for_each(|((x, xh), rs)| {
+        for ((x, xh), r) in x.chunks(c).zip(xh.chunks_mut(c)).zip(rs.iter_mut()) {
+            let mean = x.iter().sum::<f32>() / c as f32;
+            let var = x.iter().map(|&v| (v - mean) * (v - mean)).sum::<f32>() / c as f32;
+            *r = 1.0 / (var + eps).sqrt();
+            for (xh, &v) in xh.iter_mut().zip(x) {
+                *xh = (v - mean) * *r;
             }
-        });
+        }
+    });
+}
+
+/// `u = xhat γ + β` by rows (`xhat, u [rows, C]`, `C = gamma.len()`; `beta`: `None` = 0).
+fn affine_rows(xhat: &[f32], gamma: &[f32], beta: Option<&[f32]>, u: &mut [f32]) {
+    let c = gamma.len();
+    xhat.par_chunks(ROWS_PER_TASK * c).zip(u.par_chunks_mut(ROWS_PER_TASK * c)).for_each(|(xh, u)| {
+        for (xh, u) in xh.chunks(c).zip(u.chunks_mut(c)) {
+            for (i, (u, &v)) in u.iter_mut().zip(xh).enumerate() {
+                *u = v * gamma[i] + beta.map_or(0.0, |b| b[i]);
+            }
+        }
+    });
+}
+
+/// Row-wise LayerNorm of `x [rows, C]` (biased variance) into caller buffers: `xhat`,
+/// `rstd [rows]` and `u = xhat γ + β`.
+pub(crate) fn layer_norm_rows(x: &[f32], gamma: &[f32], beta: Option<&[f32]>, eps: f32, xhat: &mut [f32], rstd: &mut [f32], u: &mut [f32]) {
+    normalize_rows(x, gamma.len(), eps, xhat, rstd);
+    affine_rows(xhat, gamma, beta, u);
 }
 
 /// LayerNorm backward of a row block: `g_u [rows, C]` (gradient of the LN output), `xhat`,
@@ -213,23 +234,55 @@ impl HostLinear {
 
     /// `x W + b`: `x [rows, d_in] -> [rows, d_out]`.
     pub fn forward(&self, x: &[f32]) -> Vec<f32> {
-        let rows = x.len() / self.d_in.max(1);
-        let mut y = vec![0.0; rows * self.d_out];
-        broadcast_rows(&mut y, self.bias.as_deref(), self.d_out);
-        matmul(rows, self.d_out, self.d_in, &mut y, true, x, false, &self.weight, false);
+        let mut y = vec![0.0; x.len() / self.d_in.max(1) * self.d_out];
+        self.forward_into(x, &mut y);
         y
+    }
+
+    /// [`Self::forward`] into `y [rows, d_out]`.
+    pub fn forward_into(&self, x: &[f32], y: &mut [f32]) {
+        let rows = x.len() / self.d_in.max(1);
+        broadcast_rows(y, self.bias.as_deref(), self.d_out);
+        matmul(rows, self.d_out, self.d_in, y, true, x, false, &self.weight, false);
+    }
+
+    /// Zeroed parameter gradients of this layer (`input` left empty), for
+    /// [`Self::backward_into`].
+    pub fn zero_grads(&self) -> LinearGrads {
+        LinearGrads { weight: vec![0.0; self.d_in * self.d_out], bias: vec![0.0; self.d_out], input: Vec::new() }
     }
 
     /// The backward of [`Self::forward`] at input `x [rows, d_in]` for `g [rows, d_out]`.
     pub fn backward(&self, x: &[f32], g: &[f32]) -> LinearGrads {
+        let mut grads = self.zero_grads();
+        let mut input = vec![0.0; x.len()];
+        self.backward_into(x, g, false, &mut grads, &mut input);
+        grads.input = input;
+        grads
+    }
+
+    /// The backward of [`Self::forward`] at `x [rows, d_in]` for `g [rows, d_out]`, in caller
+    /// buffers: [`Self::param_grads_into`], then [`Self::input_grad_into`].
+    pub fn backward_into(&self, x: &[f32], g: &[f32], accumulate: bool, params: &mut LinearGrads, d_input: &mut [f32]) {
+        self.param_grads_into(x, g, accumulate, params);
+        self.input_grad_into(g, d_input);
+    }
+
+    /// `d W = xᵀ g`, `d b = Σ g` at `x [rows, d_in]` for `g [rows, d_out]`, into
+    /// `params.weight`, `params.bias`: added to them when `accumulate` (e.g. over row
+    /// blocks), overwriting them otherwise. `params.input` is not touched.
+    pub fn param_grads_into(&self, x: &[f32], g: &[f32], accumulate: bool, params: &mut LinearGrads) {
         let rows = x.len() / self.d_in.max(1);
-        let mut weight = vec![0.0; self.d_in * self.d_out];
-        matmul(self.d_in, self.d_out, rows, &mut weight, false, x, true, g, false);
-        let mut bias = vec![0.0; self.d_out];
-        add_col_sums(&mut bias, g, self.d_out);
-        let mut input = vec![0.0; rows * self.d_in];
-        matmul_bt(rows, self.d_in, self.d_out, &mut input, g, &self.weight);
-        LinearGrads { weight, bias, input }
+        matmul(self.d_in, self.d_out, rows, &mut params.weight, accumulate, x, true, g, false);
+        if !accumulate {
+            params.bias.fill(0.0);
+        }
+        add_col_sums(&mut params.bias, g, self.d_out);
+    }
+
+    /// `d x = g Wᵀ [rows, d_in]` for `g [rows, d_out]`, into `d_input`.
+    pub fn input_grad_into(&self, g: &[f32], d_input: &mut [f32]) {
+        matmul_bt(g.len() / self.d_out.max(1), self.d_in, self.d_out, d_input, g, &self.weight);
     }
 }
 
@@ -256,9 +309,14 @@ impl HostNorm {
     pub fn forward(&self, x: &[f32]) -> (NormRows, Vec<f32>) {
         NormRows::forward(x, &self.gamma, self.beta.as_deref(), self.eps)
     }
+
+    /// The kept state of `LN(x)` without its output ([`NormRows::of`]).
+    pub fn state(&self, x: &[f32]) -> NormRows {
+        NormRows::of(x, self.gamma.len(), self.eps)
+    }
 }
 
 /// The f32 values of `t`, row-major; `None` when they cannot be read back.
 pub(crate) fn read_values<const D: usize>(t: Tensor<D>) -> Option<Vec<f32>> {
-    t.try_into_data().ok()?.convert::<f32>().try_into_vec::<f32>().ok()
+    crate::model::tensor_into_f32(t, "host readback").ok()
 }

@@ -21,7 +21,7 @@
 
 use rayon::prelude::*;
 
-use crate::host_dense::{ROWS_PER_TASK, add_col_sums, broadcast_rows, layer_norm_backward_rows, layer_norm_rows, matmul, matmul_bt, scale_rows};
+use crate::host_dense::{HostLinear, HostNorm, LinearGrads, ROWS_PER_TASK, layer_norm_backward_rows, layer_norm_rows, scale_rows};
 use crate::ops::ROW_BLOCK_BUDGET_FLOATS;
 
 /// `1 / sqrt(2 pi)`, the standard normal density at 0.
@@ -49,89 +49,47 @@ fn gelu_derivative(x: f32) -> f32 {
     cdf + x * INV_SQRT_2PI * (-0.5 * x * x).exp()
 }
 
-/// The parameters of one MLP branch, row-major host copies (Burn `Linear` layout: weights are
-/// `[d_in, d_out]`).
-#[derive(Debug, Clone, Copy)]
-pub struct MlpWeights<'a> {
-    /// Channels `C`.
-    pub channels: usize,
-    /// Hidden width `H`.
-    pub hidden: usize,
-    /// LayerNorm epsilon.
-    pub ln_eps: f32,
-    /// LN2 scale `γ [C]`.
-    pub ln_gamma: &'a [f32],
-    /// LN2 shift `β [C]` (`None`: no shift).
-    pub ln_beta: Option<&'a [f32]>,
-    /// `W1 [C, H]`.
-    pub fc1_weight: &'a [f32],
-    /// `b1 [H]` (`None`: no bias).
-    pub fc1_bias: Option<&'a [f32]>,
-    /// `W2 [H, C]`.
-    pub fc2_weight: &'a [f32],
-    /// `b2 [C]` (`None`: no bias), unused by the backward (kept for the shape check).
-    pub fc2_bias: Option<&'a [f32]>,
-}
-
-impl MlpWeights<'_> {
-    /// Whether every slice has the length its shape asks for.
-    fn is_consistent(&self) -> bool {
-        let (c, h) = (self.channels, self.hidden);
-        self.ln_gamma.len() == c
-            && self.ln_beta.is_none_or(|b| b.len() == c)
-            && self.fc1_weight.len() == c * h
-            && self.fc1_bias.is_none_or(|b| b.len() == h)
-            && self.fc2_weight.len() == h * c
-            && self.fc2_bias.is_none_or(|b| b.len() == c)
-    }
-}
-
-/// Gradients of one MLP branch (row-major, shapes of [`MlpWeights`]).
+/// Gradients of one MLP branch (row-major; the parameter shapes of the layers).
 #[derive(Debug, Clone)]
-pub struct MlpGrads {
+pub(crate) struct MlpGrads {
     /// `d x2 [N, C]` (the residual included).
     pub input: Vec<f32>,
     /// `d γ [C]`.
     pub ln_gamma: Vec<f32>,
     /// `d β [C]`.
     pub ln_beta: Vec<f32>,
-    /// `d W1 [C, H]`.
-    pub fc1_weight: Vec<f32>,
-    /// `d b1 [H]`.
-    pub fc1_bias: Vec<f32>,
-    /// `d W2 [H, C]`.
-    pub fc2_weight: Vec<f32>,
-    /// `d b2 [C]`.
-    pub fc2_bias: Vec<f32>,
+    /// `d W1 [C, H]`, `d b1 [H]` (`input` empty).
+    pub fc1: LinearGrads,
+    /// `d W2 [H, C]`, `d b2 [C]` (`input` empty).
+    pub fc2: LinearGrads,
 }
 
-/// The backward of `x3 = x2 + s ⊙ MLP(LN2(x2))` (module docs): `x2, g [N, C]` (the branch
-/// input and the gradient of `x3`), `row_scale [N]` (the drop-path scale `s`, `None` = 1).
-/// Processed in row blocks whose `[rows, H]` buffers stay below [`ROW_BLOCK_BUDGET_FLOATS`].
-/// `None` when a length does not match its shape.
-pub fn mlp_backward(x2: &[f32], g: &[f32], row_scale: Option<&[f32]>, w: &MlpWeights) -> Option<MlpGrads> {
-    mlp_backward_in_blocks(x2, g, row_scale, w, (ROW_BLOCK_BUDGET_FLOATS / w.hidden.max(1)).max(1))
+/// The backward of `x3 = x2 + s ⊙ fc2(GELU(fc1(LN2(x2))))` (module docs): `x2, g [N, C]`
+/// (the branch input and the gradient of `x3`), `row_scale [N]` (the drop-path scale `s`,
+/// `None` = 1). Processed in row blocks whose `[rows, H]` buffers stay below
+/// [`ROW_BLOCK_BUDGET_FLOATS`]. `None` when a length does not match its shape.
+pub(crate) fn mlp_backward(x2: &[f32], g: &[f32], row_scale: Option<&[f32]>, ln: &HostNorm, fc1: &HostLinear, fc2: &HostLinear) -> Option<MlpGrads> {
+    mlp_backward_in_blocks(x2, g, row_scale, ln, fc1, fc2, (ROW_BLOCK_BUDGET_FLOATS / fc1.d_out.max(1)).max(1))
+}
+
+/// Whether the layers chain as `LN [C] -> fc1 [C, H] -> fc2 [H, C]` with consistent lengths.
+fn is_consistent(ln: &HostNorm, fc1: &HostLinear, fc2: &HostLinear) -> bool {
+    let (c, h) = (ln.gamma.len(), fc1.d_out);
+    let linear_ok = |l: &HostLinear| l.weight.len() == l.d_in * l.d_out && l.bias.as_ref().is_none_or(|b| b.len() == l.d_out);
+    ln.beta.as_ref().is_none_or(|b| b.len() == c) && fc1.d_in == c && fc2.d_in == h && fc2.d_out == c && linear_ok(fc1) && linear_ok(fc2)
 }
 
 /// [`mlp_backward`] in blocks of `block_rows` rows.
-fn mlp_backward_in_blocks(x2: &[f32], g: &[f32], row_scale: Option<&[f32]>, w: &MlpWeights, block_rows: usize) -> Option<MlpGrads> {
-    let (c, hid) = (w.channels, w.hidden);
-    if c == 0 || hid == 0 || !w.is_consistent() || x2.len() % c != 0 || g.len() != x2.len() {
+fn mlp_backward_in_blocks(x2: &[f32], g: &[f32], row_scale: Option<&[f32]>, ln: &HostNorm, fc1: &HostLinear, fc2: &HostLinear, block_rows: usize) -> Option<MlpGrads> {
+    let (c, hid) = (ln.gamma.len(), fc1.d_out);
+    if c == 0 || hid == 0 || !is_consistent(ln, fc1, fc2) || x2.len() % c != 0 || g.len() != x2.len() {
         return None;
     }
     let n = x2.len() / c;
     if row_scale.is_some_and(|s| s.len() != n) {
         return None;
     }
-    let mut out = MlpGrads {
-        input: vec![0.0; n * c],
-        ln_gamma: vec![0.0; c],
-        ln_beta: vec![0.0; c],
-        fc1_weight: vec![0.0; c * hid],
-        fc1_bias: vec![0.0; hid],
-        fc2_weight: vec![0.0; hid * c],
-        fc2_bias: vec![0.0; c],
-    };
+    let mut out = MlpGrads { input: vec![0.0; n * c], ln_gamma: vec![0.0; c], ln_beta: vec![0.0; c], fc1: fc1.zero_grads(), fc2: fc2.zero_grads() };
     let block = block_rows.clamp(1, n.max(1));
     // buffers reused by every block (fresh pages are expensive: docs/performance.md)
     let mut xhat = vec![0.0f32; block * c];
@@ -149,32 +107,26 @@ fn mlp_backward_in_blocks(x2: &[f32], g: &[f32], row_scale: Option<&[f32]>, w: &
         let (g_y, g_u) = (&mut g_y[..rows * c], &mut g_u[..rows * c]);
         let accumulate = b > 0;
         // forward: LN2, fc1, GELU
-        layer_norm_rows(xs, w.ln_gamma, w.ln_beta, w.ln_eps, xhat, rstd, u);
-        broadcast_rows(h, w.fc1_bias, hid);
-        matmul(rows, hid, c, h, true, u, false, w.fc1_weight, false);
+        layer_norm_rows(xs, &ln.gamma, ln.beta.as_deref(), ln.eps, xhat, rstd, u);
+        fc1.forward_into(u, h);
         a.par_chunks_mut(ROWS_PER_TASK * hid).zip(h.par_chunks(ROWS_PER_TASK * hid)).for_each(|(a, h)| {
             for (a, &h) in a.iter_mut().zip(h) {
                 *a = gelu_value(h);
             }
         });
-        // fc2
+        // fc2; g_a = g_y W2ᵀ into `a` (no longer needed), then g_h = g_a ⊙ GELU'(h) in place
         scale_rows(gs, row_scale.map(|sc| &sc[r0..r0 + rows]), c, g_y);
-        matmul(hid, c, rows, &mut out.fc2_weight, accumulate, a, true, g_y, false);
-        add_col_sums(&mut out.fc2_bias, g_y, c);
-        // g_a = g_y W2ᵀ (into `a`, no longer needed), then g_h = g_a ⊙ GELU'(h) (into `a`)
+        fc2.param_grads_into(a, g_y, accumulate, &mut out.fc2);
         let g_h = a;
-        matmul_bt(rows, hid, c, g_h, g_y, w.fc2_weight);
+        fc2.input_grad_into(g_y, g_h);
         g_h.par_chunks_mut(ROWS_PER_TASK * hid).zip(h.par_chunks(ROWS_PER_TASK * hid)).for_each(|(g, h)| {
             for (g, &h) in g.iter_mut().zip(h) {
                 *g *= gelu_derivative(h);
             }
         });
-        // fc1
-        matmul(c, hid, rows, &mut out.fc1_weight, accumulate, u, true, g_h, false);
-        add_col_sums(&mut out.fc1_bias, g_h, hid);
-        matmul_bt(rows, c, hid, g_u, g_h, w.fc1_weight);
-        // LN2
-        layer_norm_backward_rows(g_u, xhat, rstd, w.ln_gamma, Some(gs), &mut out.input[r0 * c..(r0 + rows) * c], &mut out.ln_gamma, &mut out.ln_beta);
+        // fc1, then LN2
+        fc1.backward_into(u, g_h, accumulate, &mut out.fc1, g_u);
+        layer_norm_backward_rows(g_u, xhat, rstd, &ln.gamma, Some(gs), &mut out.input[r0 * c..(r0 + rows) * c], &mut out.ln_gamma, &mut out.ln_beta);
     }
     Some(out)
 }
@@ -194,15 +146,16 @@ mod tests {
     }
 
     /// The branch output `x3 = x2 + s ⊙ MLP(LN(x2))` in f64.
-    fn forward64(x: &[f32], s: &[f32], w: &MlpWeights, gamma: &[f32], beta: &[f32], w1: &[f32], b1: &[f32], w2: &[f32], b2: &[f32]) -> Vec<f64> {
-        let (c, hid) = (w.channels, w.hidden);
+    #[allow(clippy::too_many_arguments)]
+    fn forward64(x: &[f32], s: &[f32], eps: f32, gamma: &[f32], beta: &[f32], w1: &[f32], b1: &[f32], w2: &[f32], b2: &[f32]) -> Vec<f64> {
+        let (c, hid) = (gamma.len(), b1.len());
         let n = x.len() / c;
         let mut out = vec![0.0f64; n * c];
         for r in 0..n {
             let row: Vec<f64> = x[r * c..(r + 1) * c].iter().map(|&v| v as f64).collect();
             let mean = row.iter().sum::<f64>() / c as f64;
             let var = row.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / c as f64;
-            let rs = 1.0 / (var + w.ln_eps as f64).sqrt();
+            let rs = 1.0 / (var + eps as f64).sqrt();
             let u: Vec<f64> = (0..c).map(|i| (row[i] - mean) * rs * gamma[i] as f64 + beta[i] as f64).collect();
             let a: Vec<f64> = (0..hid)
                 .map(|j| {
@@ -224,39 +177,42 @@ mod tests {
         let gamma = lcg(1, c, 1.0).iter().map(|v| v + 1.0).collect::<Vec<_>>();
         let beta = lcg(2, c, 0.3);
         let (w1, b1, w2, b2) = (lcg(3, c * hid, 0.6), lcg(4, hid, 0.2), lcg(5, hid * c, 0.6), lcg(6, c, 0.2));
-        let w = MlpWeights { channels: c, hidden: hid, ln_eps: 1e-5, ln_gamma: &gamma, ln_beta: Some(&beta), fc1_weight: &w1, fc1_bias: Some(&b1), fc2_weight: &w2, fc2_bias: Some(&b2) };
+        let eps = 1e-5;
+        let ln = HostNorm { gamma: gamma.clone(), beta: Some(beta.clone()), eps };
+        let fc1 = HostLinear { d_in: c, d_out: hid, weight: w1.clone(), bias: Some(b1.clone()) };
+        let fc2 = HostLinear { d_in: hid, d_out: c, weight: w2.clone(), bias: Some(b2.clone()) };
         let x = lcg(7, n * c, 1.5);
         let g = lcg(8, n * c, 1.0);
         let s: Vec<f32> = (0..n).map(|r| if r % 3 == 1 { 0.0 } else { 1.25 }).collect();
-        let d = mlp_backward(&x, &g, Some(&s), &w).expect("consistent shapes");
+        let d = mlp_backward(&x, &g, Some(&s), &ln, &fc1, &fc2).expect("consistent shapes");
         // objective <x3, g> in f64, central differences in f64 on every input
         let objective = |x: &[f32], gamma: &[f32], beta: &[f32], w1: &[f32], b1: &[f32], w2: &[f32], b2: &[f32]| -> f64 {
-            forward64(x, &s, &w, gamma, beta, w1, b1, w2, b2).iter().zip(&g).map(|(a, &b)| a * b as f64).sum()
+            forward64(x, &s, eps, gamma, beta, w1, b1, w2, b2).iter().zip(&g).map(|(a, &b)| a * b as f64).sum()
         };
-        let eps = 1e-3f32;
+        let step = 1e-3f32;
         let check = |name: &str, analytic: &[f32], base: &[f32], f: &dyn Fn(&[f32]) -> f64| {
             for i in 0..base.len() {
                 let (mut p, mut m) = (base.to_vec(), base.to_vec());
-                p[i] += eps;
-                m[i] -= eps;
-                let fd = (f(&p) - f(&m)) / (2.0 * eps as f64);
+                p[i] += step;
+                m[i] -= step;
+                let fd = (f(&p) - f(&m)) / (2.0 * step as f64);
                 assert!((analytic[i] as f64 - fd).abs() < 2e-3 * (1.0 + fd.abs()), "{name}[{i}]: {} vs {fd}", analytic[i]);
             }
         };
         check("x", &d.input, &x, &|v| objective(v, &gamma, &beta, &w1, &b1, &w2, &b2));
         check("gamma", &d.ln_gamma, &gamma, &|v| objective(&x, v, &beta, &w1, &b1, &w2, &b2));
         check("beta", &d.ln_beta, &beta, &|v| objective(&x, &gamma, v, &w1, &b1, &w2, &b2));
-        check("w1", &d.fc1_weight, &w1, &|v| objective(&x, &gamma, &beta, v, &b1, &w2, &b2));
-        check("b1", &d.fc1_bias, &b1, &|v| objective(&x, &gamma, &beta, &w1, v, &w2, &b2));
-        check("w2", &d.fc2_weight, &w2, &|v| objective(&x, &gamma, &beta, &w1, &b1, v, &b2));
-        check("b2", &d.fc2_bias, &b2, &|v| objective(&x, &gamma, &beta, &w1, &b1, &w2, v));
+        check("w1", &d.fc1.weight, &w1, &|v| objective(&x, &gamma, &beta, v, &b1, &w2, &b2));
+        check("b1", &d.fc1.bias, &b1, &|v| objective(&x, &gamma, &beta, &w1, v, &w2, &b2));
+        check("w2", &d.fc2.weight, &w2, &|v| objective(&x, &gamma, &beta, &w1, &b1, v, &b2));
+        check("b2", &d.fc2.bias, &b2, &|v| objective(&x, &gamma, &beta, &w1, &b1, &w2, v));
         // row blocks (weight gradients accumulated over blocks) give the same result
-        let blocked = mlp_backward_in_blocks(&x, &g, Some(&s), &w, 2).expect("consistent shapes");
-        for (a, b) in [(&d.input, &blocked.input), (&d.fc1_weight, &blocked.fc1_weight), (&d.fc2_bias, &blocked.fc2_bias), (&d.ln_gamma, &blocked.ln_gamma)] {
+        let blocked = mlp_backward_in_blocks(&x, &g, Some(&s), &ln, &fc1, &fc2, 2).expect("consistent shapes");
+        for (a, b) in [(&d.input, &blocked.input), (&d.fc1.weight, &blocked.fc1.weight), (&d.fc2.bias, &blocked.fc2.bias), (&d.ln_gamma, &blocked.ln_gamma)] {
             assert!(a.iter().zip(b.iter()).all(|(x, y)| (x - y).abs() <= 1e-5 * (1.0 + x.abs())), "blocked backward differs");
         }
-        assert!(mlp_backward(&x[1..], &g[1..], None, &w).is_none(), "a ragged input is refused");
-        assert!(mlp_backward(&x, &g, Some(&s[1..]), &w).is_none(), "a short drop-path scale is refused");
+        assert!(mlp_backward(&x[1..], &g[1..], None, &ln, &fc1, &fc2).is_none(), "a ragged input is refused");
+        assert!(mlp_backward(&x, &g, Some(&s[1..]), &ln, &fc1, &fc2).is_none(), "a short drop-path scale is refused");
     }
 
     #[test]

@@ -230,17 +230,26 @@ impl GgptOutput {
 /// allocation above the device's limits or out of memory) becomes [`ModelError::Readback`]
 /// naming the tensor, with a hint to run smaller forwards, instead of a panic.
 pub fn read_tensor_f32<const D: usize>(t: &burn::tensor::Tensor<D>, name: &str) -> Result<Vec<f32>> {
-    let data = t.try_to_data().map_err(|e| ModelError::Readback {
+    tensor_into_f32(t.clone(), name)
+}
+
+/// [`read_tensor_f32`] of an owned tensor (no copy of the tensor data on the host).
+pub fn tensor_into_f32<const D: usize>(t: burn::tensor::Tensor<D>, name: &str) -> Result<Vec<f32>> {
+    let data = t.try_into_data().map_err(|e| ModelError::Readback {
         name: name.to_string(),
         message: format!("device execution failed ({e}); if the device ran out of memory or hit a buffer-size limit, run smaller forwards (--max-tokens-per-forward / smaller chunks)"),
     })?;
-    read_f32(&data, name)
+    data_into_f32(data, name)
 }
 
 /// Converts tensor data to `Vec<f32>`, naming the tensor on failure.
 pub fn read_f32(data: &burn::tensor::TensorData, name: &str) -> Result<Vec<f32>> {
-    data.clone()
-        .convert::<f32>()
-        .try_to_vec::<f32>()
+    data_into_f32(data.clone(), name)
+}
+
+/// [`read_f32`] of owned data.
+fn data_into_f32(data: burn::tensor::TensorData, name: &str) -> Result<Vec<f32>> {
+    data.convert::<f32>()
+        .try_into_vec::<f32>()
         .map_err(|e| ModelError::Readback { name: name.to_string(), message: format!("{e:?}") })
 }
