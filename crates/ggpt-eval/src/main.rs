@@ -4,8 +4,7 @@
 //! Results: a table on stdout and, with `--json`, a JSON report (written atomically); logs go to
 //! stderr (`RUST_LOG=debug` for more).
 
-mod demo;
-mod evaluate;
+mod commands;
 
 use std::path::PathBuf;
 
@@ -13,7 +12,10 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use ggpt_core::io::scene_dir::read_scene;
 
-use crate::evaluate::{CameraSource, PredSource, evaluate_scene, format_table, load_sfm_outputs, write_json};
+use ggpt_core::io::atomic::write_json_atomic;
+use ggpt_eval::report::{CameraSource, PredSource, evaluate_scene, format_table, load_sfm_outputs};
+
+use crate::commands::demo;
 
 /// Evaluate point maps and cameras against ground truth.
 ///
@@ -51,8 +53,8 @@ struct EvalArgs {
     pred: String,
     /// Cameras to evaluate: `auto` (same source as --pred when it is ff/sfm/gt, else ff), `ff`,
     /// `sfm`, `gt` or `none`.
-    #[arg(long, value_enum, default_value_t = CameraSource::Auto)]
-    cameras: CameraSource,
+    #[arg(long, value_enum, default_value_t = CamerasArg::Auto)]
+    cameras: CamerasArg,
     /// Evaluate this SfM result instead of the scene's own: the `sfm_dlt_outputs.safetensors`
     /// written by `ggpt-sfm run`, its `--out` directory, or an official `sfm_dlt_outputs.bin`
     /// (used by `--pred sfm` and `--cameras sfm`).
@@ -64,6 +66,33 @@ struct EvalArgs {
     /// Seed of the RANSAC generator of the Sim(3) alignment.
     #[arg(long, default_value_t = 42)]
     seed: u64,
+}
+
+/// `--cameras` (the CLI face of [`CameraSource`]).
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum CamerasArg {
+    /// `ff`/`sfm`/`gt` as `--pred` when it names one, else `ff` when present.
+    Auto,
+    /// Feed-forward cameras.
+    Ff,
+    /// Bundle-adjusted SfM cameras.
+    Sfm,
+    /// GT cameras (sanity check).
+    Gt,
+    /// No camera evaluation.
+    None,
+}
+
+impl From<CamerasArg> for CameraSource {
+    fn from(a: CamerasArg) -> Self {
+        match a {
+            CamerasArg::Auto => CameraSource::Auto,
+            CamerasArg::Ff => CameraSource::Ff,
+            CamerasArg::Sfm => CameraSource::Sfm,
+            CamerasArg::Gt => CameraSource::Gt,
+            CamerasArg::None => CameraSource::None,
+        }
+    }
 }
 
 /// Scene family of the demo.
@@ -124,9 +153,9 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         scene.sfm = Some(load_sfm_outputs(p, scene.dims).with_context(|| format!("--sfm {}", p.display()))?);
     }
     tracing::info!("scene {} ({} views, {}x{})", scene.name, scene.dims.n, scene.dims.w, scene.dims.h);
-    let report = evaluate_scene(&scene, &pred, a.cameras, a.seed)?;
+    let report = evaluate_scene(&scene, &pred, a.cameras.into(), a.seed)?;
     if let Some(path) = &a.json {
-        write_json(path, &report)?;
+        write_json_atomic(path, &report)?;
         tracing::info!("report written to {}", path.display());
     }
     println!("scene {}", scene.name);

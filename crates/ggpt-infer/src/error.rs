@@ -37,6 +37,10 @@ pub enum InferError {
     /// Network error (configuration, checkpoint, planning).
     #[error(transparent)]
     Model(#[from] ggpt_model::ModelError),
+
+    /// Evaluation against the ground truth failed.
+    #[error("evaluation: {0}")]
+    Eval(#[from] ggpt_eval::EvalError),
     /// Synthetic scene generation error.
     #[error("synthetic scene: {0}")]
     Synth(#[from] ggpt_synth::SynthError),

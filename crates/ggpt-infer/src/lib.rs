@@ -4,7 +4,7 @@
 //!   (several chunks per forward within a token budget, eval mode, one forward alive at a time);
 //! * [`model_load`]: weights / configuration resolution, the shipped model folder;
 //! * [`pipeline`]: [`pipeline::run_scene`] — SfM when needed, refinement, export, evaluation;
-//! * [`evaluation`]: before / after metrics; [`error_maps`]: per-view PNG error maps;
+//! * before / after metrics: [`ggpt_eval::refinement`]; [`error_maps`]: per-view PNG error maps;
 //! * [`demo`]: the synthetic end-to-end demo; [`rss`]: per-stage wall time and peak memory.
 //!
 //! Frames and units: refined points in the SfM frame (scene units); evaluation in the GT frame
@@ -13,7 +13,6 @@
 pub mod demo;
 pub mod error;
 pub mod error_maps;
-pub mod evaluation;
 pub mod model_load;
 pub mod pipeline;
 pub mod refiner;

@@ -17,7 +17,7 @@ use ggpt_model::infer::prepare_chunks;
 use ggpt_model::weights::load_checkpoint;
 use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_infer::demo::{DemoOptions, run_demo};
-use ggpt_infer::evaluation::format_table;
+use ggpt_eval::format_refinement_table as format_table;
 use ggpt_infer::model_load::{ChunkingSettings, SHIPPED_MODEL_DIR, chunking_flag, load_model, resolve_chunking, resolve_model};
 use ggpt_infer::pipeline::{RunOptions, RunReport, run_scene};
 use ggpt_infer::refiner::BurnRefiner;

@@ -11,14 +11,15 @@ use ggpt_core::io::st::StWriter;
 use ggpt_core::{Scene, SfmResult};
 use ggpt_scene::ChunkRefiner;
 use ggpt_scene::driver::{Progress, RefineOptions, RefinedScene, refine_scene_with_progress};
-use ggpt_scene::export::{ExportOptions, ExportSummary, export_scene, write_json};
+use ggpt_core::io::atomic::write_json_atomic;
+use ggpt_scene::export::{ExportOptions, ExportSummary, export_scene};
 use ggpt_sfm::ba::CameraModel;
 use ggpt_sfm::masks::Preset;
 use ggpt_sfm::pipeline::{SfmConfig, SfmSummary, run_sfm};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::error_maps::{DEFAULT_ERROR_MAP_MAX_CM, write_error_maps};
-use crate::evaluation::{SceneEvaluation, evaluate_refinement};
+use ggpt_eval::refinement::{SceneEvaluation, evaluate_refinement};
 use crate::refiner::{BurnRefiner, RefinerStats};
 use crate::rss::{StageLog, StageTiming, mib, peak_rss_bytes, reset_peak_rss};
 use crate::{InferError, Result};
@@ -230,7 +231,7 @@ pub fn run_scene(
     if opts.evaluate && scene.gt.is_some() {
         log.start("evaluation");
         let detail = evaluate_refinement(scene, &sfm, &refined.points, opts.refine.seed)?;
-        write_json(&out.join(EVALUATION_JSON), &serde_json::to_value(&detail.summary).map_err(|e| InferError::Invalid(e.to_string()))?)?;
+        write_json_atomic(&out.join(EVALUATION_JSON), &detail.summary)?;
         files.push(EVALUATION_JSON.into());
         if opts.error_maps {
             let dir = out.join(ERROR_MAP_DIR);
@@ -258,6 +259,6 @@ pub fn run_scene(
             m.insert("evaluation".into(), serde_json::json!({"ff": auc(&e.ff), "refined": auc(&e.refined), "sfm": e.sfm.as_ref().map(auc)}));
         }
     }
-    write_json(&out.join("meta.json"), &meta)?;
+    write_json_atomic(&out.join("meta.json"), &meta)?;
     Ok(RunReport { out_dir: out.to_path_buf(), refined, sfm, sfm_summary, export: summary, evaluation, network: stats, stages })
 }

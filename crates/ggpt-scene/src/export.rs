@@ -15,7 +15,7 @@
 
 use std::path::Path;
 
-use ggpt_core::io::atomic::write_bytes_atomic;
+use ggpt_core::io::atomic::write_json_atomic;
 use ggpt_core::io::colmap::{ColmapModel, ColmapPoint3D, write_colmap};
 use ggpt_core::io::npy::{NpyArray, NpyData, write_npy, write_npz};
 use ggpt_core::io::ply::{PlyCloud, write_ply};
@@ -204,13 +204,6 @@ fn arr(shape: Vec<usize>, data: NpyData) -> Result<NpyArray, SceneError> {
     Ok(NpyArray::new(shape, data)?)
 }
 
-/// Writes `config.json` / `meta.json`-style pretty JSON atomically.
-pub fn write_json(path: &Path, value: &serde_json::Value) -> Result<(), SceneError> {
-    let text = serde_json::to_string_pretty(value).map_err(|e| SceneError::Invalid(format!("{}: cannot serialise JSON: {e}", path.display())))?;
-    write_bytes_atomic(path, format!("{text}\n").as_bytes())?;
-    Ok(())
-}
-
 /// `ERROR` of a COLMAP `points3D` entry without observations: COLMAP's "undefined" marker
 /// (`Point3D::HasError()` is false, so COLMAP's / pycolmap's mean reprojection error skips it).
 pub const COLMAP_UNDEFINED_ERROR: f64 = -1.0;
@@ -316,12 +309,12 @@ pub fn export_scene(
         files.push("sparse/0".into());
     }
     let summary = ExportSummary { threshold: tau, ply_points: keep.len(), sfm_points: sfm_count, colmap_points: colmap_count, files };
-    write_json(&dir.join("config.json"), config)?;
+    write_json_atomic(&dir.join("config.json"), config)?;
     let mut meta = meta.clone();
     if let serde_json::Value::Object(m) = &mut meta {
         m.insert("export".into(), serde_json::to_value(&summary).map_err(|e| SceneError::Invalid(format!("meta.json: {e}")))?);
     }
-    write_json(&dir.join("meta.json"), &meta)?;
+    write_json_atomic(&dir.join("meta.json"), &meta)?;
     Ok(summary)
 }
 

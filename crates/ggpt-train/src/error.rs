@@ -45,6 +45,10 @@ pub enum TrainError {
     /// Error from the synthetic generator.
     #[error(transparent)]
     Synth(#[from] ggpt_synth::SynthError),
+
+    /// Evaluation against the ground truth failed.
+    #[error("evaluation: {0}")]
+    Eval(#[from] ggpt_eval::EvalError),
     /// Error from the SfM stage.
     #[error("SfM: {0}")]
     Sfm(String),

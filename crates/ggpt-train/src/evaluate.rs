@@ -9,7 +9,6 @@ use ggpt_core::{Scene, SfmResult};
 use ggpt_model::plan::ChunkInput;
 use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_scene::driver::{ChunkRefiner, RefineOptions, refine_scene};
-use rand::SeedableRng;
 use serde::{Deserialize, Serialize};
 
 use crate::chunkset::{SceneEntry, TrainChunk};
@@ -88,9 +87,13 @@ pub fn validate_chunks(model: &Ggpt, cfg: &GgptConfig, chunks: &[TrainChunk], sc
     })
 }
 
-/// Whole-scene result of one held-out scene.
+/// Seed of the RANSAC generator of the held-out evaluation (`pipeline.md` §10.2).
+pub const HELD_OUT_EVAL_SEED: u64 = 42;
+
+/// Whole-scene result of one held-out scene: the summary of [`ggpt_eval::evaluate_refinement`]
+/// (the same evaluation as `ggpt-infer`'s `evaluation.json`) and the chunk coverage.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct SceneEvaluation {
+pub struct HeldOutScene {
     /// Scene name.
     pub name: String,
     /// AUC@5 cm of the feed-forward input ("init", unaligned; percent).
@@ -101,8 +104,9 @@ pub struct SceneEvaluation {
     pub refined_auc5: f64,
     /// AUC@10 cm of the refined points.
     pub refined_auc10: f64,
-    /// AUC@5 of the DLT points on `M_s ∧ V` (for reference).
-    pub sfm_auc5: f64,
+    /// AUC@5 of the DLT points on `M_s ∧ V` (for reference); `None` when the scene has none
+    /// to evaluate.
+    pub sfm_auc5: Option<f64>,
     /// Fraction of GT pixels covered by at least one chunk.
     pub covered: f64,
     /// Chunks.
@@ -110,27 +114,21 @@ pub struct SceneEvaluation {
 }
 
 /// Refines a held-out scene with `refiner` (`pipeline.md` §3-§8) and evaluates the input and
-/// the refined points against GT (`pipeline.md` §10.2, seed 42 for the RANSAC).
-pub fn evaluate_scene(scene: &Scene, sfm: &SfmResult, refiner: &mut dyn ChunkRefiner, opts: &RefineOptions) -> Result<SceneEvaluation> {
+/// the refined points against GT with [`ggpt_eval::evaluate_refinement`] (seed
+/// [`HELD_OUT_EVAL_SEED`]).
+pub fn evaluate_scene(scene: &Scene, sfm: &SfmResult, refiner: &mut dyn ChunkRefiner, opts: &RefineOptions) -> Result<HeldOutScene> {
     let gt = scene.gt.as_ref().ok_or_else(|| TrainError::Invalid(format!("scene {}: no GT", scene.name)))?;
-    let ff = scene.ff.as_ref().ok_or_else(|| TrainError::Invalid(format!("scene {}: no feed-forward", scene.name)))?;
     let refined = refine_scene(scene, sfm, refiner, opts)?;
-    let err = ggpt_scene::prealign::DEFAULT_ALIGN_MAX_ERROR;
-    let mut rng = rand_pcg::Pcg64::seed_from_u64(42);
-    let init = ggpt_core::metrics::points::point_metrics(&ff.points, &gt.points, &gt.mask, None, err, &mut rng)?;
-    let mut rng = rand_pcg::Pcg64::seed_from_u64(42);
-    let pred = ggpt_core::metrics::points::point_metrics(&refined.points, &gt.points, &gt.mask, None, err, &mut rng)?;
-    let mut rng = rand_pcg::Pcg64::seed_from_u64(42);
-    let sfm_m = ggpt_core::metrics::points::point_metrics(&sfm.points, &gt.points, &gt.mask, Some(&sfm.mask), err, &mut rng)?;
+    let ev = ggpt_eval::evaluate_refinement(scene, sfm, &refined.points, HELD_OUT_EVAL_SEED)?.summary;
     let n_gt = gt.mask.iter().filter(|&&m| m).count().max(1);
     let cov = gt.mask.iter().zip(&refined.covered).filter(|(g, c)| **g && **c).count();
-    Ok(SceneEvaluation {
+    Ok(HeldOutScene {
         name: scene.name.clone(),
-        ff_auc5: init.metrics.auc_5,
-        ff_auc10: init.metrics.auc_10,
-        refined_auc5: pred.metrics.auc_5,
-        refined_auc10: pred.metrics.auc_10,
-        sfm_auc5: sfm_m.metrics.auc_5,
+        ff_auc5: ev.ff.auc_5,
+        ff_auc10: ev.ff.auc_10,
+        refined_auc5: ev.refined.auc_5,
+        refined_auc10: ev.refined.auc_10,
+        sfm_auc5: ev.sfm.map(|m| m.auc_5),
         covered: cov as f64 / n_gt as f64,
         chunks: refined.chunks.len(),
     })

@@ -16,7 +16,7 @@ use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_scene::chunker::ChunkParams;
 use ggpt_scene::driver::RefineOptions;
 use ggpt_train::chunkset::{ChunkSet, ChunkSetWriter, SceneEntry, Split};
-use ggpt_train::evaluate::{SceneEvaluation, evaluate_scene};
+use ggpt_train::evaluate::{HeldOutScene, evaluate_scene};
 use ggpt_train::prepare::{PrepareParams, SynthSpec, official_scene, prepare_scene, synthetic_scene};
 use ggpt_train::trainer::{self, LrSchedule, MetricsLine, Recompute, RunContext, TrainOptions};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -581,7 +581,7 @@ fn train(a: &TrainArgs) -> Result<()> {
         "grad_accum": opts.grad_accum, "recompute": opts.recompute, "init_from": a.init_from,
         "parameters": ggpt_model::weights::num_trainable_params(&model),
         "batchnorm": batchnorm});
-    ggpt_scene::export::write_json(&cfg_path, &run_cfg)?;
+    ggpt_core::io::atomic::write_json_atomic(&cfg_path, &run_cfg)?;
     tracing::info!("training {} parameters on {} ({} steps from {start})", ggpt_model::weights::num_trainable_params(&model), a.device, opts.steps);
     let stop = Arc::new(AtomicBool::new(false));
     install_ctrl_c(&stop);
@@ -693,7 +693,7 @@ fn eval(a: &EvalArgs) -> Result<()> {
         );
         if let Some(out) = &a.out {
             let j = serde_json::json!({"chunk_level": v, "model": a.model, "data": dir});
-            ggpt_scene::export::write_json(out, &j)?;
+            ggpt_core::io::atomic::write_json_atomic(out, &j)?;
         }
         return Ok(());
     }
@@ -731,25 +731,34 @@ fn eval(a: &EvalArgs) -> Result<()> {
         bail!("no scene to evaluate");
     }
     let pb = bar(scenes.len() as u64, "eval");
-    let mut results: Vec<SceneEvaluation> = Vec::new();
+    let mut results: Vec<HeldOutScene> = Vec::new();
     for s in &scenes {
         let (scene, sfm) = s.load()?;
         let r = evaluate_scene(&scene, &sfm, &mut refiner, &opts).with_context(|| format!("evaluating {}", scene.name))?;
         pb.inc(1);
         pb.println(format!(
-            "{:<28} ff AUC@5 {:5.1} AUC@10 {:5.1} | refined AUC@5 {:5.1} AUC@10 {:5.1} | DLT AUC@5 {:5.1} | covered {:.2} | {} chunks",
-            r.name, r.ff_auc5, r.ff_auc10, r.refined_auc5, r.refined_auc10, r.sfm_auc5, r.covered, r.chunks
+            "{:<28} ff AUC@5 {:5.1} AUC@10 {:5.1} | refined AUC@5 {:5.1} AUC@10 {:5.1} | DLT AUC@5 {} | covered {:.2} | {} chunks",
+            r.name,
+            r.ff_auc5,
+            r.ff_auc10,
+            r.refined_auc5,
+            r.refined_auc10,
+            r.sfm_auc5.map_or("    -".to_string(), |v| format!("{v:5.1}")),
+            r.covered,
+            r.chunks
         ));
         results.push(r);
     }
     pb.finish_and_clear();
     let n = results.len() as f64;
-    let mean = |f: fn(&SceneEvaluation) -> f64| results.iter().map(f).sum::<f64>() / n;
+    let mean = |f: fn(&HeldOutScene) -> f64| results.iter().map(f).sum::<f64>() / n;
+    let sfm: Vec<f64> = results.iter().filter_map(|r| r.sfm_auc5).collect();
+    let sfm_mean = (!sfm.is_empty()).then(|| sfm.iter().sum::<f64>() / sfm.len() as f64);
     let summary = serde_json::json!({
         "scenes": results.len(),
         "ff_auc5": mean(|r| r.ff_auc5), "ff_auc10": mean(|r| r.ff_auc10),
         "refined_auc5": mean(|r| r.refined_auc5), "refined_auc10": mean(|r| r.refined_auc10),
-        "sfm_auc5": mean(|r| r.sfm_auc5),
+        "sfm_auc5": sfm_mean,
     });
     println!(
         "mean over {} held-out scenes: AUC@5 {:.1} -> {:.1} ({:+.1}), AUC@10 {:.1} -> {:.1} ({:+.1})",
@@ -766,7 +775,7 @@ fn eval(a: &EvalArgs) -> Result<()> {
             "synthetic": a.synthetic_scenes.map(|n| serde_json::json!({"scenes": n, "first_seed": a.synth.first_seed, "views": a.synth.views,
                 "width": a.synth.width, "height": a.synth.height, "kinds": a.synth.kinds})),
             "chunking": chunking});
-        ggpt_scene::export::write_json(out, &v)?;
+        ggpt_core::io::atomic::write_json_atomic(out, &v)?;
     }
     Ok(())
 }

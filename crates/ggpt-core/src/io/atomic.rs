@@ -42,6 +42,14 @@ pub fn write_bytes_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     write_atomic(path, |w| w.write_all(bytes))
 }
 
+/// Writes `value` as pretty JSON with a final newline, atomically (see [`write_atomic`]): the
+/// one JSON writer of every report, `config.json` and `meta.json`.
+pub fn write_json_atomic(path: &Path, value: &impl serde::Serialize) -> Result<()> {
+    let mut text = serde_json::to_string_pretty(value).map_err(|e| CoreError::format(path, "", format!("cannot serialise JSON: {e}")))?;
+    text.push('\n');
+    write_bytes_atomic(path, text.as_bytes())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

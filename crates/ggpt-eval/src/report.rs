@@ -1,9 +1,8 @@
-//! Scene evaluation: picks the prediction and cameras to evaluate, runs the `pipeline.md` §10
-//! metrics against the scene's ground truth and assembles the JSON report.
+//! One prediction of a scene against its ground truth: picks the prediction and cameras to
+//! evaluate, runs the `pipeline.md` §10 metrics and assembles the JSON report (`ggpt-eval`).
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, anyhow, bail};
 use ggpt_core::io::npy::read_npy;
 use ggpt_core::io::st::{Dtype, StFile, le_f32, le_f64};
 use ggpt_core::metrics::{
@@ -12,6 +11,8 @@ use ggpt_core::metrics::{
 use ggpt_core::{Cameras, Dims, Scene, SfmResult};
 use rand::SeedableRng;
 use rand_pcg::Pcg64;
+
+use crate::error::{EvalError, Result, invalid};
 
 /// Which point map to evaluate.
 #[derive(Debug, Clone, PartialEq)]
@@ -44,13 +45,13 @@ impl PredSource {
             let (path, rest) = s.split_at(i + ".safetensors".len());
             let key = match rest.strip_prefix(':') {
                 Some(k) if !k.is_empty() => Some(k.to_string()),
-                Some(_) => bail!("--pred {s}: empty tensor key after ':'"),
+                Some(_) => invalid!("--pred {s}: empty tensor key after ':'"),
                 None if rest.is_empty() => None,
-                None => bail!("--pred {s}: expected FILE.safetensors or FILE.safetensors:KEY"),
+                None => invalid!("--pred {s}: expected FILE.safetensors or FILE.safetensors:KEY"),
             };
             return Ok(PredSource::SafeTensors(PathBuf::from(path), key));
         }
-        bail!("--pred {s}: expected ff, sfm, gt, FILE.npy or FILE.safetensors[:KEY]")
+        invalid!("--pred {s}: expected ff, sfm, gt, FILE.npy or FILE.safetensors[:KEY]")
     }
 
     /// Short label for tables and the report.
@@ -69,7 +70,7 @@ impl PredSource {
 }
 
 /// Which cameras to evaluate.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum CameraSource {
     /// `ff`/`sfm`/`gt` as `--pred` when it names one, else `ff` when present.
@@ -113,21 +114,21 @@ pub struct EvalReport {
 pub fn load_prediction(scene: &Scene, source: &PredSource) -> Result<Vec<f32>> {
     let want = 3 * scene.dims.pixels();
     let pts = match source {
-        PredSource::Ff => scene.ff.as_ref().map(|f| f.points.clone()).ok_or_else(|| anyhow!("scene {} has no feed-forward points", scene.name))?,
-        PredSource::Sfm => scene.sfm.as_ref().map(|s| s.points.clone()).ok_or_else(|| anyhow!("scene {} has no SfM result", scene.name))?,
-        PredSource::Gt => scene.gt.as_ref().map(|g| g.points.clone()).ok_or_else(|| anyhow!("scene {} has no ground truth", scene.name))?,
+        PredSource::Ff => scene.ff.as_ref().map(|f| f.points.clone()).ok_or_else(|| EvalError::Invalid(format!("scene {} has no feed-forward points", scene.name)))?,
+        PredSource::Sfm => scene.sfm.as_ref().map(|s| s.points.clone()).ok_or_else(|| EvalError::Invalid(format!("scene {} has no SfM result", scene.name)))?,
+        PredSource::Gt => scene.gt.as_ref().map(|g| g.points.clone()).ok_or_else(|| EvalError::Invalid(format!("scene {} has no ground truth", scene.name)))?,
         PredSource::Npy(path) => {
-            let a = read_npy(path).with_context(|| format!("reading prediction {}", path.display()))?;
+            let a = read_npy(path).map_err(|source| EvalError::Input { what: format!("reading prediction {}", path.display()), source })?;
             check_shape(path, "", &a.shape, scene.dims)?;
-            a.to_f32().ok_or_else(|| anyhow!("{}: dtype {} is not float32/float64", path.display(), a.data.descr()))?
+            a.to_f32().ok_or_else(|| EvalError::Invalid(format!("{}: dtype {} is not float32/float64", path.display(), a.data.descr())))?
         }
         PredSource::SafeTensors(path, key) => load_safetensors(path, key.as_deref(), scene.dims)?,
     };
     if pts.len() != want {
-        bail!("prediction {}: {} values, expected {want} ({:?} x 3)", source.label(), pts.len(), scene.dims);
+        invalid!("prediction {}: {} values, expected {want} ({:?} x 3)", source.label(), pts.len(), scene.dims);
     }
     if let Some(i) = pts.iter().position(|v| !v.is_finite()) {
-        bail!("prediction {}: non-finite value at flat index {i} (pixel {})", source.label(), i / 3);
+        invalid!("prediction {}: non-finite value at flat index {i} (pixel {})", source.label(), i / 3);
     }
     Ok(pts)
 }
@@ -135,7 +136,7 @@ pub fn load_prediction(scene: &Scene, source: &PredSource) -> Result<Vec<f32>> {
 fn check_shape(path: &Path, key: &str, shape: &[usize], d: Dims) -> Result<()> {
     let ok = shape == [d.n, d.h, d.w, 3] || shape == [d.pixels(), 3];
     if !ok {
-        bail!(
+        invalid!(
             "{}{}: shape {shape:?}, expected [{}, {}, {}, 3] or [{}, 3] for this scene",
             path.display(),
             if key.is_empty() { String::new() } else { format!(" [{key}]") },
@@ -152,7 +153,7 @@ fn check_shape(path: &Path, key: &str, shape: &[usize], d: Dims) -> Result<()> {
 const DEFAULT_ST_KEYS: [&str; 3] = ["points", "pred_points", "world_points"];
 
 fn load_safetensors(path: &Path, key: Option<&str>, dims: Dims) -> Result<Vec<f32>> {
-    let st = StFile::open(path).with_context(|| format!("reading prediction {}", path.display()))?;
+    let st = StFile::open(path).map_err(|source| EvalError::Input { what: format!("reading prediction {}", path.display()), source })?;
     let key = match key {
         Some(k) => k.to_string(),
         None => {
@@ -162,7 +163,7 @@ fn load_safetensors(path: &Path, key: Option<&str>, dims: Dims) -> Result<Vec<f3
             } else if let Some(k) = DEFAULT_ST_KEYS.iter().find(|k| st.has(k)) {
                 (*k).to_string()
             } else {
-                bail!("{}: several tensors {keys:?}; name one with FILE.safetensors:KEY", path.display());
+                invalid!("{}: several tensors {keys:?}; name one with FILE.safetensors:KEY", path.display());
             }
         }
     };
@@ -171,7 +172,7 @@ fn load_safetensors(path: &Path, key: Option<&str>, dims: Dims) -> Result<Vec<f3
     match dtype {
         Dtype::F32 => Ok(le_f32(bytes)),
         Dtype::F64 => Ok(le_f64(bytes).into_iter().map(|v| v as f32).collect()),
-        d => bail!("{} [{key}]: dtype {d:?} is not F32/F64", path.display()),
+        d => invalid!("{} [{key}]: dtype {d:?} is not F32/F64", path.display()),
     }
 }
 
@@ -200,7 +201,7 @@ pub fn resolve_cameras(pred: &PredSource, cams: CameraSource, scene: &Scene) -> 
 /// Evaluates `pred` (and the cameras `cams`) of `scene` against its ground truth with the
 /// RANSAC generator seeded by `seed`.
 pub fn evaluate_scene(scene: &Scene, pred: &PredSource, cams: CameraSource, seed: u64) -> Result<EvalReport> {
-    let gt = scene.gt.as_ref().ok_or_else(|| anyhow!("scene {} has no ground truth to evaluate against", scene.name))?;
+    let gt = scene.gt.as_ref().ok_or_else(|| EvalError::Invalid(format!("scene {} has no ground truth to evaluate against", scene.name)))?;
     let points = load_prediction(scene, pred)?;
     let subset = match pred {
         PredSource::Sfm => scene.sfm.as_ref().map(|s| s.mask.as_slice()),
@@ -208,7 +209,7 @@ pub fn evaluate_scene(scene: &Scene, pred: &PredSource, cams: CameraSource, seed
     };
     let mut rng = Pcg64::seed_from_u64(seed);
     let ev = point_metrics(&points, &gt.points, &gt.mask, subset, EVAL_ALIGN_MAX_ERROR, &mut rng)
-        .with_context(|| format!("point accuracy of {}", pred.label()))?;
+        .map_err(|source| EvalError::Metric { what: format!("point accuracy of {}", pred.label()), source })?;
     let mut warnings = Vec::new();
     let depth = match depth_metrics(&points, &ev.sim3, &gt.cameras, &gt.points, gt.depth.as_deref(), &ev.mask) {
         Ok(d) => Some(d),
@@ -270,25 +271,25 @@ pub fn load_sfm_outputs(path: &Path, dims: Dims) -> Result<SfmResult> {
         } else if bin.is_file() {
             bin
         } else {
-            bail!("{}: directory holds neither {SFM_OUTPUT_FILE} nor sfm_dlt_outputs.bin", path.display());
+            invalid!("{}: directory holds neither {SFM_OUTPUT_FILE} nor sfm_dlt_outputs.bin", path.display());
         }
     } else {
         path.to_path_buf()
     };
     let (n, h, w) = (dims.n, dims.h, dims.w);
     let res = if file.extension().is_some_and(|e| e == "bin") {
-        let b = ggpt_core::io::official::read_sfm_dlt_outputs_bin(&file).with_context(|| format!("reading SfM outputs {}", file.display()))?;
+        let b = ggpt_core::io::official::read_sfm_dlt_outputs_bin(&file).map_err(|source| EvalError::Input { what: format!("reading SfM outputs {}", file.display()), source })?;
         if b.dims != dims {
-            bail!("{}: SfM outputs are {:?}, the scene is {dims:?}", file.display(), b.dims);
+            invalid!("{}: SfM outputs are {:?}, the scene is {dims:?}", file.display(), b.dims);
         }
         b.to_sfm_result()
     } else {
-        let st = StFile::open(&file).with_context(|| format!("reading SfM outputs {}", file.display()))?;
+        let st = StFile::open(&file).map_err(|source| EvalError::Input { what: format!("reading SfM outputs {}", file.display()), source })?;
         let points = st.f32_finite("points", &[n, h, w, 3])?;
         let mask = st.bool("point_masks", &[n, h, w])?;
         let rows = match st.shape("extrinsics")? {
             [m, r, 4] if *m == n && (*r == 3 || *r == 4) => *r,
-            s => bail!("{} [extrinsics]: shape {s:?}, expected [{n}, 3, 4] or [{n}, 4, 4]", file.display()),
+            s => invalid!("{} [extrinsics]: shape {s:?}, expected [{n}, 3, 4] or [{n}, 4, 4]", file.display()),
         };
         let ext = camera_floats(&st, "extrinsics", &[n, rows, 4])?;
         let k = camera_floats(&st, "intrinsics", &[n, 3, 3])?;
@@ -309,7 +310,7 @@ fn camera_floats(st: &StFile, key: &str, shape: &[usize]) -> Result<Vec<f64>> {
         _ => st.f32(key, shape)?.into_iter().map(f64::from).collect(),
     };
     if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-        bail!("{} [{key}]: non-finite value at flat index {i}", st.path().display());
+        invalid!("{} [{key}]: non-finite value at flat index {i}", st.path().display());
     }
     Ok(v)
 }
@@ -372,13 +373,6 @@ pub fn format_table(reports: &[EvalReport]) -> String {
     s.push_str("point AUC@τ: % of GT pixels within τ cm after robust Sim(3) alignment (pipeline.md §10.2);\n");
     s.push_str("camera AUC@τ: relative-pose error max(rot, trans dir) over view pairs, degrees (§10.3); depth (AbsRel fraction, δ<τ %) in the GT cameras (§10.4).\n");
     s
-}
-
-/// Writes a report as pretty JSON, atomically.
-pub fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<()> {
-    let bytes = serde_json::to_vec_pretty(value).context("serialising the report")?;
-    ggpt_core::io::atomic::write_bytes_atomic(path, &bytes).with_context(|| format!("writing {}", path.display()))?;
-    Ok(())
 }
 
 #[cfg(test)]

@@ -1,7 +1,9 @@
 //! Before / after evaluation of a refined scene against its ground truth (`pipeline.md` §10):
 //! the unaligned feed-forward points ("init"), the SfM (DLT) points on `M_s ∧ V`, and the refined
 //! points, each Sim(3)-aligned to the GT with the §3.1 estimator; cameras of the feed-forward
-//! prediction and of the SfM stage.
+//! prediction and of the SfM stage. The one evaluation of a refinement: `ggpt-infer`
+//! (`evaluation.json`, the demo table) and `ggpt-train eval` (held-out scenes) both call
+//! [`evaluate_refinement`].
 
 use ggpt_core::metrics::{CameraMetrics, EVAL_ALIGN_MAX_ERROR, PointMetrics, camera_metrics, point_metrics};
 use ggpt_core::metrics::points::PointEvaluation;
@@ -9,7 +11,7 @@ use ggpt_core::{Scene, SfmResult};
 use rand::SeedableRng;
 use rand_pcg::Pcg64;
 
-use crate::{InferError, Result};
+use crate::error::{EvalError, Result};
 
 /// The evaluation JSON (`evaluation.json`). Point AUCs in percent of GT-valid pixels within
 /// τ cm; camera AUCs in percent of view pairs within τ degrees.
@@ -48,15 +50,15 @@ pub struct EvaluationDetail {
 /// Evaluates the feed-forward, SfM and refined (`[N, h, w, 3]`, SfM frame) points of `scene`
 /// against its GT (metres, GT frame). Errors when the scene has no ground truth.
 pub fn evaluate_refinement(scene: &Scene, sfm: &SfmResult, refined_points: &[f32], seed: u64) -> Result<EvaluationDetail> {
-    let gt = scene.gt.as_ref().ok_or_else(|| InferError::Invalid(format!("scene {} has no ground truth", scene.name)))?;
-    let ff = scene.ff.as_ref().ok_or_else(|| InferError::Invalid(format!("scene {} has no feed-forward prediction", scene.name)))?;
+    let gt = scene.gt.as_ref().ok_or_else(|| EvalError::Invalid(format!("scene {} has no ground truth", scene.name)))?;
+    let ff = scene.ff.as_ref().ok_or_else(|| EvalError::Invalid(format!("scene {} has no feed-forward prediction", scene.name)))?;
     let eval = |pred: &[f32], subset: Option<&[bool]>| {
         let mut rng = Pcg64::seed_from_u64(seed);
         point_metrics(pred, &gt.points, &gt.mask, subset, EVAL_ALIGN_MAX_ERROR, &mut rng)
     };
     let mut warnings = Vec::new();
-    let ff_ev = eval(&ff.points, None)?;
-    let refined_ev = eval(refined_points, None)?;
+    let ff_ev = eval(&ff.points, None).map_err(|source| EvalError::Metric { what: format!("{}: feed-forward point accuracy", scene.name), source })?;
+    let refined_ev = eval(refined_points, None).map_err(|source| EvalError::Metric { what: format!("{}: refined point accuracy", scene.name), source })?;
     let sfm_metrics = match eval(&sfm.points, Some(&sfm.mask)) {
         Ok(e) => Some(e.metrics),
         Err(e) => {
@@ -90,7 +92,7 @@ pub fn evaluate_refinement(scene: &Scene, sfm: &SfmResult, refined_points: &[f32
 }
 
 /// The before / after table printed by `ggpt-infer demo` and `run`.
-pub fn format_table(ev: &SceneEvaluation) -> String {
+pub fn format_refinement_table(ev: &SceneEvaluation) -> String {
     let mut s = format!(
         "{:<22} {:>8} {:>7} {:>7} {:>7} {:>7} {:>9} {:>7}\n",
         "points", "pixels", "AUC@1", "AUC@3", "AUC@5", "AUC@10", "median cm", "ratio"

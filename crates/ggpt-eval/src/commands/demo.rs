@@ -9,7 +9,8 @@ use ggpt_core::io::scene_dir::{read_scene, write_scene};
 use ggpt_synth::{SceneKind, Stage, SynthConfig, generate_with_progress};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::evaluate::{CameraSource, EvalReport, PredSource, evaluate_scene, format_table, write_json};
+use ggpt_core::io::atomic::write_json_atomic;
+use ggpt_eval::report::{CameraSource, EvalReport, PredSource, evaluate_scene, format_table};
 
 /// Options of the demo.
 #[derive(Debug, Clone)]
@@ -85,7 +86,7 @@ pub fn run_demo(opts: &DemoOptions) -> Result<DemoOutput> {
     ] {
         let report = evaluate_scene(&scene, &pred, cams, opts.seed)?;
         let path = opts.out.join(file);
-        write_json(&path, &report)?;
+        write_json_atomic(&path, &report)?;
         reports.push((path, report));
     }
     Ok(DemoOutput { scene_dir, reports })

@@ -1,0 +1,3 @@
+//! The subcommands of the `ggpt-eval` binary (binary-only code).
+
+pub mod demo;
