@@ -10,6 +10,7 @@
 //! Conventions (frames, pixel centres, units) are in `docs/conventions.md`.
 
 pub mod camera;
+pub mod chunking;
 pub mod error;
 pub mod io;
 pub mod metrics;

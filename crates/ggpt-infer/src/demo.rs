@@ -7,7 +7,10 @@ use ggpt_core::io::scene_dir::write_scene;
 use ggpt_model::device::device_from_name;
 use ggpt_synth::{SceneKind, SynthConfig, generate};
 
-use crate::model_load::{ChunkingSettings, ModelSpec, chunking_flag, load_model, resolve_chunking, resolve_model};
+use ggpt_model::ModelError;
+use ggpt_model::model_dir::{ModelSpec, load_model, resolve_model, shipped_model_dir};
+use ggpt_scene::chunk_settings::{ChunkingSettings, resolve_chunking};
+
 use crate::pipeline::{RunOptions, RunReport, run_scene};
 use crate::refiner::BurnRefiner;
 use crate::rss::StageLog;
@@ -28,8 +31,9 @@ pub struct DemoOptions {
     pub height: usize,
     /// Output folder (scene in `<out>/scene`, results in `<out>`).
     pub out: PathBuf,
-    /// Weights file or model folder (default: the shipped model).
-    pub weights: PathBuf,
+    /// Weights file or model folder (`None`: the shipped model,
+    /// [`ggpt_model::model_dir::shipped_model_dir`]).
+    pub weights: Option<PathBuf>,
     /// Model configuration file (default: `model_config.json` next to the weights).
     pub model_config: Option<PathBuf>,
     /// Built-in configuration instead of a file.
@@ -40,7 +44,7 @@ pub struct DemoOptions {
     /// `inference.json`, which wins over `run.refine.chunking`.
     pub chunking: ChunkingSettings,
     /// Everything after the synthesis (`run.refine.chunking` is the base of the chunk-sampler
-    /// resolution, see [`crate::model_load::resolve_chunking`]).
+    /// resolution, see [`ggpt_scene::chunk_settings::resolve_chunking`]).
     pub run: RunOptions,
 }
 
@@ -55,22 +59,21 @@ pub struct DemoReport {
     pub run: RunReport,
 }
 
-/// Resolves the model, with a clear message when the shipped model is missing.
+/// Resolves the model (the shipped one by default), with a clear message when a file is
+/// missing.
 fn demo_model(opts: &DemoOptions) -> Result<ModelSpec> {
-    // The built-in default is `<crate>/../../models/...`: show it without the `..`.
-    let weights = if opts.weights == std::path::Path::new(crate::model_load::SHIPPED_MODEL_DIR) {
-        std::fs::canonicalize(&opts.weights).unwrap_or_else(|_| opts.weights.clone())
-    } else {
-        opts.weights.clone()
+    let weights = match &opts.weights {
+        Some(w) => w.clone(),
+        None => shipped_model_dir()?,
     };
     resolve_model(&weights, opts.model_config.as_deref(), opts.preset.as_deref()).map_err(|e| match e {
-        InferError::Missing { what, path } => InferError::Missing {
+        ModelError::Missing { what, path } => InferError::Model(ModelError::Missing {
             what: format!(
                 "{what} of the demo model (the shipped model lives in models/ggpt-synth-small/ with model.safetensors and model_config.json; pass --weights FILE [--model-config FILE] to use another)"
             ),
             path,
-        },
-        e => e,
+        }),
+        e => e.into(),
     })
 }
 
@@ -80,7 +83,8 @@ fn demo_model(opts: &DemoOptions) -> Result<ModelSpec> {
 pub fn run_demo(opts: &DemoOptions, log: &mut StageLog) -> Result<DemoReport> {
     let spec = demo_model(opts)?;
     let mut run_opts = opts.run.clone();
-    let chunking = resolve_chunking(&run_opts.refine.chunking, &spec, &opts.chunking, chunking_flag)?;
+    // the caller validated the flags under their own names ([`ChunkingSettings::validate`])
+    let chunking = resolve_chunking(&run_opts.refine.chunking, spec.chunking_layer(), &opts.chunking, |f| format!("chunking.{f}"))?;
     tracing::info!("chunk sampler: {}", chunking.describe());
     run_opts.refine.chunking = chunking.params.clone();
     let device = device_from_name(&opts.device)?;

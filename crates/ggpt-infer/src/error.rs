@@ -5,23 +5,6 @@ use std::path::PathBuf;
 /// Errors of whole-scene inference. Every variant names the file or stage and the problem.
 #[derive(Debug, thiserror::Error)]
 pub enum InferError {
-    /// A required input file or directory does not exist.
-    #[error("{what} not found: {path}")]
-    Missing {
-        /// What was expected (e.g. "scene directory", "weights").
-        what: String,
-        /// The path that was looked up.
-        path: PathBuf,
-    },
-    /// A model folder's `inference.json` (recommended sampler settings) cannot be read or is
-    /// invalid (malformed JSON, unknown key, out-of-range value).
-    #[error("model inference settings {path}: {message}")]
-    Settings {
-        /// The `inference.json` file.
-        path: PathBuf,
-        /// What is wrong with it.
-        message: String,
-    },
     /// Invalid input or option.
     #[error("invalid input: {0}")]
     Invalid(String),

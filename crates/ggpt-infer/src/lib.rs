@@ -2,7 +2,8 @@
 //!
 //! * [`refiner`]: [`refiner::BurnRefiner`], the network as a `ggpt_scene::ChunkRefiner`
 //!   (several chunks per forward within a token budget, eval mode, one forward alive at a time);
-//! * [`model_load`]: weights / configuration resolution, the shipped model folder;
+//! * the model folder (weights, configuration, `inference.json`, the shipped model):
+//!   [`ggpt_model::model_dir`];
 //! * [`pipeline`]: [`pipeline::run_scene`] — SfM when needed, refinement, export, evaluation;
 //! * before / after metrics: [`ggpt_eval::refinement`]; [`error_maps`]: per-view PNG error maps;
 //! * [`demo`]: the synthetic end-to-end demo; [`rss`]: per-stage wall time and peak memory.
@@ -13,7 +14,6 @@
 pub mod demo;
 pub mod error;
 pub mod error_maps;
-pub mod model_load;
 pub mod pipeline;
 pub mod refiner;
 pub mod rss;

@@ -18,7 +18,8 @@ use ggpt_model::weights::load_checkpoint;
 use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_infer::demo::{DemoOptions, run_demo};
 use ggpt_eval::format_refinement_table as format_table;
-use ggpt_infer::model_load::{ChunkingSettings, SHIPPED_MODEL_DIR, chunking_flag, load_model, resolve_chunking, resolve_model};
+use ggpt_model::model_dir::{load_model, resolve_model};
+use ggpt_scene::chunk_settings::{ChunkingSettings, resolve_chunking};
 use ggpt_infer::pipeline::{RunOptions, RunReport, run_scene};
 use ggpt_infer::refiner::BurnRefiner;
 use ggpt_infer::rss::{StageLog, StageTiming};
@@ -207,9 +208,10 @@ struct DemoArgs {
     /// Output folder (the scene goes to `<out>/scene`).
     #[arg(long, default_value = "ggpt_demo")]
     out: PathBuf,
-    /// Weights file or model folder (default: the shipped `models/ggpt-synth-small/`).
-    #[arg(long, default_value = SHIPPED_MODEL_DIR)]
-    weights: PathBuf,
+    /// Weights file or model folder (default: the shipped `models/ggpt-synth-small/`, embedded
+    /// in the binary).
+    #[arg(long)]
+    weights: Option<PathBuf>,
     /// Model configuration JSON (default: `model_config.json` next to the weights).
     #[arg(long, conflicts_with = "preset")]
     model_config: Option<PathBuf>,
@@ -227,14 +229,24 @@ impl CommonArgs {
     }
 }
 
+/// The command-line flag of a [`ChunkingSettings`] field, for messages.
+fn chunking_flag(field: &str) -> String {
+    match field {
+        "chunk_size" => "--chunk-size".into(),
+        "max_pixels" => "--max-chunk-pixels".into(),
+        "min_dlt" => "--min-chunk-dlt".into(),
+        "min_pixels" => "--min-chunk-pixels".into(),
+        other => other.into(),
+    }
+}
+
 fn configure_threads(threads: usize) -> Result<()> {
     if threads > 0 {
         // SAFETY: called before any other thread of this process exists (the thread pools of
         // the backends are created lazily afterwards); matrixmultiply reads it once.
         unsafe { std::env::set_var("MATMUL_NUM_THREADS", threads.to_string()) };
-        rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().context("configuring the thread pool")?;
     }
-    Ok(())
+    ggpt_model::device::init_cpu_threads(threads).context("configuring the thread pool")
 }
 
 /// `--colmap-resolution`: `ff` -> `None`, `WIDTHxHEIGHT` -> `Some((height, width))`.
@@ -327,7 +339,7 @@ fn run_run(args: RunArgs) -> Result<()> {
     let mut log = StageLog::new();
     log.start("load model");
     let spec = resolve_model(&args.weights, args.model_config.as_deref(), args.preset.as_deref())?;
-    let chunking = resolve_chunking(&opts.refine.chunking, &spec, &args.common.chunking(), chunking_flag)?;
+    let chunking = resolve_chunking(&opts.refine.chunking, spec.chunking_layer(), &args.common.chunking(), chunking_flag)?;
     info!("chunk sampler: {}", chunking.describe());
     opts.refine.chunking = chunking.params.clone();
     let device = device_from_name(&args.common.device)?;
@@ -383,7 +395,11 @@ fn run_demo_cmd(args: DemoArgs) -> Result<()> {
         model_config: args.model_config.clone(),
         preset: args.preset.clone(),
         device: args.common.device.clone(),
-        chunking: args.common.chunking(),
+        chunking: {
+            let flags = args.common.chunking();
+            flags.validate(chunking_flag).map_err(anyhow::Error::msg)?;
+            flags
+        },
         run: run_options(&args.common, args.seed, None)?,
     };
     let mut log = StageLog::new();

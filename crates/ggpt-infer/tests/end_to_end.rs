@@ -11,7 +11,8 @@ use std::path::Path;
 
 use burn::nn::LinearConfig;
 use ggpt_core::Scene;
-use ggpt_infer::model_load::{ChunkingSettings, INFERENCE_SETTINGS_FILE, ModelSpec, SettingOrigin, chunking_flag, load_model, resolve_chunking, resolve_model};
+use ggpt_model::model_dir::{INFERENCE_SETTINGS_FILE, ModelSpec, load_model, resolve_model};
+use ggpt_scene::chunk_settings::{ChunkingSettings, SettingOrigin, resolve_chunking};
 use ggpt_infer::pipeline::{RunOptions, RunReport, run_scene};
 use ggpt_infer::refiner::BurnRefiner;
 use ggpt_infer::rss::StageLog;
@@ -49,7 +50,7 @@ fn tiny_scene() -> Scene {
 /// Run options with the chunk-sampler settings resolved from the model's `inference.json`.
 fn options(spec: &ModelSpec) -> RunOptions {
     let mut opts = RunOptions::default();
-    let chunking = resolve_chunking(&ChunkParams::default(), spec, &ChunkingSettings::default(), chunking_flag).unwrap();
+    let chunking = resolve_chunking(&ChunkParams::default(), spec.chunking_layer(), &ChunkingSettings::default(), |f: &str| f.to_string()).unwrap();
     assert_eq!((chunking.max_pixels.origin, chunking.chunk_size.origin), (SettingOrigin::Model, SettingOrigin::Default));
     opts.refine.chunking = chunking.params.clone();
     assert_eq!((opts.refine.chunking.max_pixels, opts.refine.chunking.min_dlt, opts.refine.chunking.min_pixels), (1200, 40, 300));
@@ -61,7 +62,7 @@ fn run_on(device: &str, spec: &ModelSpec, scene: &mut Scene, opts: &RunOptions, 
     let device = device_from_name(device).unwrap();
     let model = load_model(spec, &device).unwrap();
     let mut refiner = BurnRefiner::new(model, spec.config.clone(), device).unwrap();
-    let config = serde_json::json!({"chunking": resolve_chunking(&ChunkParams::default(), spec, &ChunkingSettings::default(), chunking_flag).unwrap()});
+    let config = serde_json::json!({"chunking": resolve_chunking(&ChunkParams::default(), spec.chunking_layer(), &ChunkingSettings::default(), |f: &str| f.to_string()).unwrap()});
     run_scene(scene, &mut refiner, opts, out, &config, serde_json::json!({}), &mut StageLog::new()).unwrap()
 }
 

@@ -22,6 +22,22 @@ pub enum ModelError {
         /// What is wrong.
         message: String,
     },
+    /// A file of a model folder is missing (`what` says which, and how to supply it).
+    #[error("{what} not found: {path}")]
+    Missing {
+        /// What is missing.
+        what: String,
+        /// Where it was looked for.
+        path: PathBuf,
+    },
+    /// A model's `inference.json` is unreadable or invalid.
+    #[error("model inference settings {path}: {message}")]
+    Settings {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
     /// A checkpoint could not be read.
     #[error("checkpoint {path}: {message}")]
     CheckpointRead {

@@ -25,6 +25,7 @@ pub mod host_mlp;
 pub mod infer;
 pub mod linear_bn;
 pub mod model;
+pub mod model_dir;
 pub mod norm;
 pub mod ops;
 pub mod plan;

@@ -14,6 +14,7 @@
 //! Frames: the refined outputs live in the SfM frame (scene units); chunk records in the chunk
 //! frame `x' = (x - c) / r`. Arrays are flat in pixel order `p = (n * h + y) * w + x`.
 
+pub mod chunk_settings;
 pub mod chunker;
 pub mod driver;
 pub mod error;

@@ -6,7 +6,8 @@ use std::path::Path;
 
 use burn::module::Module;
 use burn_store::ModuleSnapshot;
-use ggpt_infer::model_load::{ChunkingSettings, INFERENCE_SETTINGS_FILE, InferenceSettings, MODEL_CONFIG_FILE, MODEL_WEIGHTS_FILE};
+use ggpt_core::chunking::ChunkingSettings;
+use ggpt_model::model_dir::{INFERENCE_SETTINGS_FILE, InferenceSettings, MODEL_CONFIG_FILE, MODEL_WEIGHTS_FILE};
 use ggpt_model::weights::official_key;
 use ggpt_model::{Ggpt, GgptConfig};
 use safetensors::tensor::{Dtype, TensorView};

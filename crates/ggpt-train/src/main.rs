@@ -11,7 +11,8 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use burn::module::Module;
 use clap::{Args, Parser, Subcommand};
-use ggpt_infer::model_load::{ChunkingSettings, MODEL_WEIGHTS_FILE, load_model, resolve_model};
+use ggpt_model::model_dir::{MODEL_WEIGHTS_FILE, load_model, resolve_model};
+use ggpt_scene::chunk_settings::{ChunkingSettings, resolve_chunking};
 use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_scene::chunker::ChunkParams;
 use ggpt_scene::driver::RefineOptions;
@@ -72,21 +73,19 @@ struct ChunkingArgs {
     min_pixels: Option<usize>,
 }
 
+/// The `ggpt-train` flag of a [`ChunkingSettings`] field (`max_pixels` -> `--max-pixels`), for
+/// messages.
+fn chunking_flag(field: &str) -> String {
+    format!("--{}", field.replace('_', "-"))
+}
+
 impl ChunkingArgs {
     fn settings(&self) -> ChunkingSettings {
         ChunkingSettings { chunk_size: self.chunk_size, max_pixels: self.max_pixels, min_dlt: self.min_dlt, min_pixels: self.min_pixels }
     }
     /// The flags over the official defaults (`prepare`).
     fn params(&self) -> Result<ChunkParams> {
-        self.settings().validate(|f| format!("--{}", f.replace('_', "-"))).map_err(anyhow::Error::msg)?;
-        let d = ChunkParams::default();
-        Ok(ChunkParams {
-            chunk_size: self.chunk_size.unwrap_or(d.chunk_size),
-            max_pixels: self.max_pixels.unwrap_or(d.max_pixels),
-            min_dlt: self.min_dlt.unwrap_or(d.min_dlt),
-            min_pixels: self.min_pixels.unwrap_or(d.min_pixels),
-            ..d
-        })
+        Ok(resolve_chunking(&ChunkParams::default(), None, &self.settings(), chunking_flag)?.params)
     }
 }
 
@@ -620,9 +619,12 @@ fn train(a: &TrainArgs) -> Result<()> {
 }
 
 
+/// The sampler settings a model was trained with, and the file they come from.
+type ModelChunking = Option<(PathBuf, Option<ChunkingSettings>)>;
+
 /// A model from any of the forms `eval` accepts, with its configuration and, for a model folder,
 /// its `inference.json` (a checkpoint's sampler settings come from its chunk set's manifest).
-fn load_model_any(path: &Path, config: Option<&str>, device: &burn::tensor::Device) -> Result<(Ggpt, GgptConfig, Option<ChunkingSettings>)> {
+fn load_model_any(path: &Path, config: Option<&str>, device: &burn::tensor::Device) -> Result<(Ggpt, GgptConfig, ModelChunking)> {
     let checkpoint = if path.join("state.json").is_file() {
         Some(path.to_path_buf())
     } else if path.is_dir() && !path.join(MODEL_WEIGHTS_FILE).is_file() {
@@ -632,7 +634,7 @@ fn load_model_any(path: &Path, config: Option<&str>, device: &burn::tensor::Devi
     };
     if let Some(dir) = checkpoint {
         let (m, _, st) = trainer::load_checkpoint(&dir, device)?;
-        let chunking = ChunkSet::open(&st.data).ok().and_then(|set| ggpt_train::export::training_chunking(&set.manifest.provenance));
+        let chunking = ChunkSet::open(&st.data).ok().map(|set| (st.data.clone(), ggpt_train::export::training_chunking(&set.manifest.provenance)));
         return Ok((m, st.options.model, chunking));
     }
     let spec = match config {
@@ -641,7 +643,7 @@ fn load_model_any(path: &Path, config: Option<&str>, device: &burn::tensor::Devi
         Some(preset) => resolve_model(path, None, Some(preset))?,
     };
     let m = load_model(&spec, device)?;
-    let chunking = spec.inference.and_then(|i| i.settings.chunking);
+    let chunking = spec.inference.map(|i| (i.path, i.settings.chunking));
     Ok((m, spec.config, chunking))
 }
 
@@ -698,21 +700,10 @@ fn eval(a: &EvalArgs) -> Result<()> {
         return Ok(());
     }
     // flag > the model's training sampler (inference.json / chunk-set manifest) > default
-    let m = model_chunking.unwrap_or_default();
-    let chunking = ChunkingArgs {
-        chunk_size: a.chunking.chunk_size.or(m.chunk_size),
-        max_pixels: a.chunking.max_pixels.or(m.max_pixels),
-        min_dlt: a.chunking.min_dlt.or(m.min_dlt),
-        min_pixels: a.chunking.min_pixels.or(m.min_pixels),
-    }
-    .params()?;
-    tracing::info!(
-        "chunk sampler: half-size {} R, max {} pixels, min {} DLT pixels, min {} pixels",
-        chunking.chunk_size,
-        chunking.max_pixels,
-        chunking.min_dlt,
-        chunking.min_pixels
-    );
+    let layer = model_chunking.as_ref().map(|(path, c)| (path.as_path(), c.as_ref()));
+    let resolved = resolve_chunking(&ChunkParams::default(), layer, &a.chunking.settings(), chunking_flag)?;
+    tracing::info!("chunk sampler: {}", resolved.describe());
+    let chunking = resolved.params;
     let mut refiner = ggpt_infer::refiner::BurnRefiner::new(model.valid().fork(&device), cfg.clone(), device.clone())?;
     let opts = RefineOptions { chunking: chunking.clone(), max_tokens_per_forward: a.max_tokens_per_forward, ..RefineOptions::default() };
     let scenes: Vec<EvalScene> = match (&a.data, a.synthetic_scenes) {

@@ -3,9 +3,8 @@
 //! validation set contains: a regression guard on the committed weights (a corrupted, retrained
 //! or mis-exported model that no longer refines fails here).
 
-use std::path::Path;
-
-use ggpt_infer::model_load::{ChunkingSettings, SHIPPED_MODEL_DIR, chunking_flag, load_model, resolve_chunking, resolve_model};
+use ggpt_model::model_dir::{load_model, resolve_model, shipped_model_dir};
+use ggpt_scene::chunk_settings::{ChunkingSettings, resolve_chunking};
 use ggpt_scene::chunker::ChunkParams;
 use ggpt_train::chunkset::{SceneEntry, Split};
 use ggpt_train::evaluate::validate_chunks;
@@ -21,12 +20,12 @@ const FRESH_SEED: u64 = 9_317;
 
 #[test]
 fn shipped_model_loads_strictly_and_refines_fresh_chunks() {
-    let spec = resolve_model(Path::new(SHIPPED_MODEL_DIR), None, None).expect("shipped model folder");
+    let spec = resolve_model(&shipped_model_dir().expect("shipped model folder"), None, None).expect("shipped model folder");
     let device = ggpt_model::device::device_from_name("ndarray").unwrap();
     let model = load_model(&spec, &device).expect("strict load of the shipped weights");
     assert_eq!(ggpt_model::weights::num_trainable_params(&model), SHIPPED_PARAMETERS);
 
-    let chunking = resolve_chunking(&ChunkParams::default(), &spec, &ChunkingSettings::default(), chunking_flag).unwrap();
+    let chunking = resolve_chunking(&ChunkParams::default(), spec.chunking_layer(), &ChunkingSettings::default(), |f: &str| f.to_string()).unwrap();
     assert!(spec.inference.is_some(), "inference.json missing from the shipped model");
     assert_eq!(chunking.max_pixels.value, 10_000);
 

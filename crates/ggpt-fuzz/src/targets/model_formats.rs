@@ -184,13 +184,13 @@ impl Target for InferenceJson {
         "`inference.json`"
     }
     fn seed(&self) -> Result<Vec<SeedFile>> {
-        let settings = ggpt_infer::model_load::InferenceSettings {
-            chunking: Some(ggpt_infer::model_load::ChunkingSettings { chunk_size: Some(0.25), max_pixels: Some(40_000), min_dlt: Some(50), min_pixels: Some(2_000) }),
+        let settings = ggpt_model::model_dir::InferenceSettings {
+            chunking: Some(ggpt_core::chunking::ChunkingSettings { chunk_size: Some(0.25), max_pixels: Some(40_000), min_dlt: Some(50), min_pixels: Some(2_000) }),
         };
         let text = serde_json::to_string_pretty(&settings).map_err(|e| seed_err(self.name(), e))?;
         Ok(vec![SeedFile::new("inference.json", text.into_bytes())])
     }
     fn read(&self, dir: &Path) -> std::result::Result<u64, String> {
-        ggpt_infer::model_load::read_inference_settings(&dir.join("inference.json")).map(|s| fingerprint_debug(&s)).map_err(|e| err_text(&e))
+        ggpt_model::model_dir::read_inference_settings(&dir.join("inference.json")).map(|s| fingerprint_debug(&s)).map_err(|e| err_text(&e))
     }
 }
