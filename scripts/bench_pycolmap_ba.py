@@ -1,11 +1,11 @@
 #!/usr/bin/env python3
-"""Times pycolmap / Ceres bundle adjustment on the problems exported by `bench_ba --export DIR`.
+"""Times pycolmap / Ceres bundle adjustment on the problems written by `--bench ba -- --export DIR`.
 
 Usage:
-    cargo run --release -p ggpt-sfm --bin bench_ba -- --export /tmp/ba_bench
+    cargo bench -p ggpt-sfm --bench ba -- --export /tmp/ba_bench
     python scripts/bench_pycolmap_ba.py /tmp/ba_bench [--repeats 5] [--threads 2]
 
-Every `DIR/ba_*.json` problem (format written by `bench_ba`, pixel-centre convention) is loaded
+Every `DIR/ba_*.json` problem (format written by the `ba` bench, pixel-centre convention) is loaded
 into a `pycolmap.Reconstruction` in COLMAP coordinates (+0.5 px), with the same camera model,
 shared camera, focal refinement, principal point held constant, loss, gauge (two cameras) and
 stopping rules (max iterations, function / parameter tolerance) as the Rust solver, then solved
@@ -107,7 +107,7 @@ def final_cost(summary):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("dir", help="directory written by `bench_ba --export`")
+    ap.add_argument("dir", help="directory written by the `ba` bench (`--export`)")
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per problem (minimum reported)")
     ap.add_argument("--threads", type=int, default=-1, help="Ceres threads (-1 = all cores)")
     args = ap.parse_args()

@@ -61,8 +61,13 @@ impl Cameras {
 
     /// True when every entry of every matrix is finite.
     pub fn is_finite(&self) -> bool {
-        self.cam_from_world.iter().all(|m| m.iter().all(|v| v.is_finite()))
-            && self.intrinsics.iter().all(|m| m.iter().all(|v| v.is_finite()))
+        self.cam_from_world
+            .iter()
+            .all(|m| m.iter().all(|v| v.is_finite()))
+            && self
+                .intrinsics
+                .iter()
+                .all(|m| m.iter().all(|v| v.is_finite()))
     }
 }
 

@@ -21,10 +21,13 @@ impl ChunkingSettings {
     /// Checks the values that are given: `chunk_size` finite and > 0, `max_pixels` >= 1.
     /// `name` turns a field name into the name shown in the message (a flag or a JSON path).
     pub fn validate(&self, name: impl Fn(&str) -> String) -> Result<(), String> {
-        if let Some(c) = self.chunk_size {
-            if !c.is_finite() || c <= 0.0 {
-                return Err(format!("{} = {c}: must be a finite number > 0 (fraction of the scene radius)", name("chunk_size")));
-            }
+        if let Some(c) = self.chunk_size
+            && (!c.is_finite() || c <= 0.0)
+        {
+            return Err(format!(
+                "{} = {c}: must be a finite number > 0 (fraction of the scene radius)",
+                name("chunk_size")
+            ));
         }
         if self.max_pixels == Some(0) {
             return Err(format!("{} = 0: must be at least 1", name("max_pixels")));

@@ -8,7 +8,9 @@ pub enum CoreError {
     /// Operating-system I/O error on a file.
     #[error("{path}: {source}")]
     Io {
+        /// The file.
         path: PathBuf,
+        /// What the operating system said.
         #[source]
         source: std::io::Error,
     },
@@ -16,8 +18,11 @@ pub enum CoreError {
     /// `key` names the tensor / field / element when there is one (empty otherwise).
     #[error("{path}{}: {message}", if key.is_empty() { String::new() } else { format!(" [{key}]") })]
     Format {
+        /// The file.
         path: PathBuf,
+        /// The tensor / field / element, or empty.
         key: String,
+        /// The problem.
         message: String,
     },
     /// Scene content is inconsistent or invalid (not tied to one file).
@@ -30,13 +35,24 @@ pub enum CoreError {
 
 impl CoreError {
     /// Shorthand for [`CoreError::Format`].
-    pub fn format(path: impl Into<PathBuf>, key: impl Into<String>, message: impl Into<String>) -> Self {
-        CoreError::Format { path: path.into(), key: key.into(), message: message.into() }
+    pub fn format(
+        path: impl Into<PathBuf>,
+        key: impl Into<String>,
+        message: impl Into<String>,
+    ) -> Self {
+        CoreError::Format {
+            path: path.into(),
+            key: key.into(),
+            message: message.into(),
+        }
     }
 
     /// Shorthand for [`CoreError::Io`].
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        CoreError::Io { path: path.into(), source }
+        CoreError::Io {
+            path: path.into(),
+            source,
+        }
     }
 }
 

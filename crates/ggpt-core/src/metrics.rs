@@ -41,7 +41,10 @@ pub fn recalls_strict(errors: &[f64], max_k: usize) -> Vec<f64> {
 /// fraction (`pipeline.md` §10.2). Fails when fewer than `τ` recalls are given or `τ = 0`.
 pub fn auc_from_recalls(recalls: &[f64], tau: usize) -> Result<f64> {
     if tau == 0 || recalls.len() < tau {
-        return Err(CoreError::Invalid(format!("AUC@{tau} needs {tau} recalls, got {}", recalls.len())));
+        return Err(CoreError::Invalid(format!(
+            "AUC@{tau} needs {tau} recalls, got {}",
+            recalls.len()
+        )));
     }
     Ok(recalls.iter().take(tau).sum::<f64>() / tau as f64)
 }
@@ -109,11 +112,16 @@ mod tests {
     fn spec_point_test_vector() {
         let e = [0.4, 0.9, 1.0, 2.5, 4.99, 5.0, 7.2, 11.0];
         let r = recalls_strict(&e, 10);
-        let want = [0.25, 0.375, 0.5, 0.5, 0.625, 0.75, 0.75, 0.875, 0.875, 0.875];
+        let want = [
+            0.25, 0.375, 0.5, 0.5, 0.625, 0.75, 0.75, 0.875, 0.875, 0.875,
+        ];
         for (a, b) in r.iter().zip(want) {
             assert!((a - b).abs() < 1e-12, "{r:?}");
         }
-        let aucs: Vec<f64> = AUC_THRESHOLDS.iter().map(|&t| auc_from_recalls(&r, t).unwrap()).collect();
+        let aucs: Vec<f64> = AUC_THRESHOLDS
+            .iter()
+            .map(|&t| auc_from_recalls(&r, t).unwrap())
+            .collect();
         for (a, b) in aucs.iter().zip([0.25, 0.375, 0.45, 0.6375]) {
             assert!((a - b).abs() < 1e-12, "{aucs:?}");
         }
@@ -146,7 +154,10 @@ mod tests {
             let closed: f64 = (1..=tau)
                 .map(|k| {
                     let kf = k as f64;
-                    e.iter().filter(|&&x| if k == tau { x <= kf } else { x < kf }).count() as f64 / e.len() as f64
+                    e.iter()
+                        .filter(|&&x| if k == tau { x <= kf } else { x < kf })
+                        .count() as f64
+                        / e.len() as f64
                 })
                 .sum::<f64>()
                 / tau as f64;

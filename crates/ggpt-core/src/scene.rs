@@ -8,8 +8,11 @@ use crate::{Cameras, CoreError, Result};
 /// Feed-forward resolution of a scene: `n` views of `h x w` pixels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct Dims {
+    /// Views.
     pub n: usize,
+    /// Height in pixels.
     pub h: usize,
+    /// Width in pixels.
     pub w: usize,
 }
 
@@ -111,13 +114,19 @@ impl Scene {
         let px = d.pixels();
         let check_len = |what: &str, len: usize, want: usize| -> Result<()> {
             if len != want {
-                return Err(CoreError::Invalid(format!("{what}: {len} values, expected {want} for N={} h={} w={}", d.n, d.h, d.w)));
+                return Err(CoreError::Invalid(format!(
+                    "{what}: {len} values, expected {want} for N={} h={} w={}",
+                    d.n, d.h, d.w
+                )));
             }
             Ok(())
         };
         let check_finite = |what: &str, v: &[f32]| -> Result<()> {
             if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-                return Err(CoreError::Invalid(format!("{what}: non-finite value {} at flat index {i}", v[i])));
+                return Err(CoreError::Invalid(format!(
+                    "{what}: non-finite value {} at flat index {i}",
+                    v[i]
+                )));
             }
             Ok(())
         };
@@ -131,7 +140,9 @@ impl Scene {
                 )));
             }
             if !c.is_finite() {
-                return Err(CoreError::Invalid(format!("{what}: non-finite camera entry")));
+                return Err(CoreError::Invalid(format!(
+                    "{what}: non-finite camera entry"
+                )));
             }
             Ok(())
         };
@@ -162,7 +173,11 @@ impl Scene {
         let pairs = d.n * d.n * d.hw();
         for m in &self.matches {
             let name = format!("matches[{}]", m.matcher);
-            check_len(&format!("{name}.pred_matches"), m.pred_matches.len(), 2 * pairs)?;
+            check_len(
+                &format!("{name}.pred_matches"),
+                m.pred_matches.len(),
+                2 * pairs,
+            )?;
             check_len(&format!("{name}.pred_scores"), m.pred_scores.len(), pairs)?;
             check_finite(&format!("{name}.pred_scores"), &m.pred_scores)?;
             if let Some(c) = &m.pred_cycle_error {

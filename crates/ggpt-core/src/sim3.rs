@@ -51,7 +51,11 @@ impl Default for Sim3 {
 impl Sim3 {
     /// The identity transform.
     pub fn identity() -> Self {
-        Sim3 { scale: 1.0, rotation: Matrix3::identity(), translation: Vector3::zeros() }
+        Sim3 {
+            scale: 1.0,
+            rotation: Matrix3::identity(),
+            translation: Vector3::zeros(),
+        }
     }
 
     /// Applies the transform to a point of the source frame, giving target-frame coordinates.
@@ -62,7 +66,8 @@ impl Sim3 {
     /// The 3x4 matrix `[s R | t]` (target-from-source).
     pub fn to_matrix3x4(&self) -> Matrix3x4<f64> {
         let mut m = Matrix3x4::zeros();
-        m.fixed_view_mut::<3, 3>(0, 0).copy_from(&(self.rotation * self.scale));
+        m.fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(&(self.rotation * self.scale));
         m.set_column(3, &self.translation);
         m
     }
@@ -75,11 +80,18 @@ impl Sim3 {
     /// The inverse transform (`src_from_tgt`). Fails for a non-positive or non-finite scale.
     pub fn inverse(&self) -> Result<Sim3> {
         if !(self.scale.is_finite() && self.scale > 0.0) {
-            return Err(CoreError::Numeric(format!("Sim3::inverse: scale {} is not positive", self.scale)));
+            return Err(CoreError::Numeric(format!(
+                "Sim3::inverse: scale {} is not positive",
+                self.scale
+            )));
         }
         let rt = self.rotation.transpose();
         let inv_s = 1.0 / self.scale;
-        Ok(Sim3 { scale: inv_s, rotation: rt, translation: -(rt * self.translation) * inv_s })
+        Ok(Sim3 {
+            scale: inv_s,
+            rotation: rt,
+            translation: -(rt * self.translation) * inv_s,
+        })
     }
 
     /// Composition `self ∘ other` (apply `other` first): `a_from_c = a_from_b.compose(&b_from_c)`.
@@ -93,7 +105,9 @@ impl Sim3 {
 
     /// True when every component is finite.
     pub fn is_finite(&self) -> bool {
-        self.scale.is_finite() && self.rotation.iter().all(|v| v.is_finite()) && self.translation.iter().all(|v| v.is_finite())
+        self.scale.is_finite()
+            && self.rotation.iter().all(|v| v.is_finite())
+            && self.translation.iter().all(|v| v.is_finite())
     }
 }
 
@@ -112,7 +126,11 @@ pub fn apply_matrix_f32(m: &Matrix3x4<f32>, points: &mut [f32]) {
 
 fn check_pairs(src: &[Point3<f64>], tgt: &[Point3<f64>], what: &str) -> Result<()> {
     if src.len() != tgt.len() {
-        return Err(CoreError::Numeric(format!("{what}: {} source points but {} target points", src.len(), tgt.len())));
+        return Err(CoreError::Numeric(format!(
+            "{what}: {} source points but {} target points",
+            src.len(),
+            tgt.len()
+        )));
     }
     Ok(())
 }
@@ -135,7 +153,9 @@ fn umeyama_subset(src: &[Point3<f64>], tgt: &[Point3<f64>], indices: &[usize]) -
     if !(full_rank(src, indices) && full_rank(tgt, indices)) {
         return Err(CoreError::Numeric("umeyama: rank-deficient sample".into()));
     }
-    let pairs = indices.iter().filter_map(|&i| Some((src.get(i)?, tgt.get(i)?)));
+    let pairs = indices
+        .iter()
+        .filter_map(|&i| Some((src.get(i)?, tgt.get(i)?)));
     umeyama_iter(indices.len(), pairs)
 }
 
@@ -195,7 +215,9 @@ where
 {
     let n = pairs.clone().count();
     if n != n_expected || n < MIN_SAMPLE {
-        return Err(CoreError::Numeric(format!("umeyama: {n} point pairs, need at least {MIN_SAMPLE}")));
+        return Err(CoreError::Numeric(format!(
+            "umeyama: {n} point pairs, need at least {MIN_SAMPLE}"
+        )));
     }
     let nf = n as f64;
     let mut mu_s = Vector3::zeros();
@@ -220,15 +242,20 @@ where
     sigma /= nf;
     var_s /= nf;
     if !(var_s.is_finite() && var_s > 0.0) {
-        return Err(CoreError::Numeric(format!("umeyama: degenerate source (variance {var_s})")));
+        return Err(CoreError::Numeric(format!(
+            "umeyama: degenerate source (variance {var_s})"
+        )));
     }
     // General (Golub–Kahan) SVD through a dynamic matrix: nalgebra's static 3x3 path squares the
     // condition number (eigen-decomposition of Σ^T Σ).
     let dyn_sigma = DMatrix::from_column_slice(3, 3, sigma.as_slice());
-    let svd = nalgebra::linalg::SVD::try_new_unordered(dyn_sigma, true, true, f64::EPSILON * 5.0, 10_000)
-        .ok_or_else(|| CoreError::Numeric("umeyama: SVD did not converge".into()))?;
+    let svd =
+        nalgebra::linalg::SVD::try_new_unordered(dyn_sigma, true, true, f64::EPSILON * 5.0, 10_000)
+            .ok_or_else(|| CoreError::Numeric("umeyama: SVD did not converge".into()))?;
     let (Some(u), Some(v_t)) = (svd.u.as_ref(), svd.v_t.as_ref()) else {
-        return Err(CoreError::Numeric("umeyama: SVD returned no singular vectors".into()));
+        return Err(CoreError::Numeric(
+            "umeyama: SVD returned no singular vectors".into(),
+        ));
     };
     let u = Matrix3::from_iterator(u.iter().copied());
     let v_t = Matrix3::from_iterator(v_t.iter().copied());
@@ -236,7 +263,9 @@ where
     // Index of the smallest singular value: the reflection fix goes there.
     let mut min_i = 0;
     for i in 1..3 {
-        if d.get(i).copied().unwrap_or(f64::INFINITY) < d.get(min_i).copied().unwrap_or(f64::INFINITY) {
+        if d.get(i).copied().unwrap_or(f64::INFINITY)
+            < d.get(min_i).copied().unwrap_or(f64::INFINITY)
+        {
             min_i = i;
         }
     }
@@ -248,9 +277,15 @@ where
     let trace_de: f64 = d.iter().zip(e.iter()).map(|(a, b)| a * b).sum();
     let scale = trace_de / var_s;
     let translation = mu_t - scale * (rotation * mu_s);
-    let sim = Sim3 { scale, rotation, translation };
+    let sim = Sim3 {
+        scale,
+        rotation,
+        translation,
+    };
     if !sim.is_finite() || scale <= 0.0 {
-        return Err(CoreError::Numeric(format!("umeyama: degenerate result (scale {scale})")));
+        return Err(CoreError::Numeric(format!(
+            "umeyama: degenerate result (scale {scale})"
+        )));
     }
     Ok(sim)
 }
@@ -288,7 +323,10 @@ impl Default for RobustSim3Options {
 impl RobustSim3Options {
     /// Default options with the given inlier threshold.
     pub fn with_max_error(max_error: f64) -> Self {
-        RobustSim3Options { max_error, ..Default::default() }
+        RobustSim3Options {
+            max_error,
+            ..Default::default()
+        }
     }
 }
 
@@ -316,7 +354,12 @@ pub struct RobustSim3Result {
 /// when `num_inliers` of `num_samples` pairs are inliers, times `multiplier` (COLMAP
 /// `ComputeNumTrials`, with the without-replacement probability of `pipeline.md` §3.1).
 /// Returns `usize::MAX` when the formula is unbounded (no inlier) and 1 when every sample is good.
-pub fn compute_num_trials(num_inliers: usize, num_samples: usize, confidence: f64, multiplier: f64) -> usize {
+pub fn compute_num_trials(
+    num_inliers: usize,
+    num_samples: usize,
+    confidence: f64,
+    multiplier: f64,
+) -> usize {
     let nom = 1.0 - confidence;
     if nom <= 0.0 {
         return usize::MAX;
@@ -339,7 +382,11 @@ pub fn compute_num_trials(num_inliers: usize, num_samples: usize, confidence: f6
         return usize::MAX;
     }
     let trials = (nom.ln() / denom.ln() * multiplier).ceil();
-    if trials.is_finite() && trials < usize::MAX as f64 { trials.max(0.0) as usize } else { usize::MAX }
+    if trials.is_finite() && trials < usize::MAX as f64 {
+        trials.max(0.0) as usize
+    } else {
+        usize::MAX
+    }
 }
 
 /// Support of a model: inlier count and the sum of inlier squared residuals.
@@ -350,7 +397,10 @@ struct Support {
 }
 
 impl Support {
-    const WORST: Support = Support { num_inliers: 0, residual_sum: f64::INFINITY };
+    const WORST: Support = Support {
+        num_inliers: 0,
+        residual_sum: f64::INFINITY,
+    };
 
     /// More inliers is better; equal counts -> smaller residual sum is better.
     fn better_than(&self, other: &Support) -> bool {
@@ -362,11 +412,18 @@ impl Support {
 fn residuals_into(s: &Sim3, src: &[Point3<f64>], tgt: &[Point3<f64>], out: &mut Vec<f64>) {
     out.clear();
     let m = s.rotation * s.scale;
-    out.extend(src.iter().zip(tgt.iter()).map(|(a, b)| (m * a.coords + s.translation - b.coords).norm_squared()));
+    out.extend(
+        src.iter()
+            .zip(tgt.iter())
+            .map(|(a, b)| (m * a.coords + s.translation - b.coords).norm_squared()),
+    );
 }
 
 fn evaluate(residuals: &[f64], max_sq: f64) -> Support {
-    let mut sup = Support { num_inliers: 0, residual_sum: 0.0 };
+    let mut sup = Support {
+        num_inliers: 0,
+        residual_sum: 0.0,
+    };
     for &r in residuals {
         if r <= max_sq {
             sup.num_inliers += 1;
@@ -396,10 +453,15 @@ pub fn robust_sim3<R: Rng + ?Sized>(
     check_pairs(src, tgt, "robust_sim3")?;
     let n = src.len();
     if n < MIN_SAMPLE {
-        return Err(CoreError::Numeric(format!("robust_sim3: {n} point pairs, need at least {MIN_SAMPLE}")));
+        return Err(CoreError::Numeric(format!(
+            "robust_sim3: {n} point pairs, need at least {MIN_SAMPLE}"
+        )));
     }
     if !(options.max_error.is_finite() && options.max_error >= 0.0) {
-        return Err(CoreError::Numeric(format!("robust_sim3: invalid max_error {}", options.max_error)));
+        return Err(CoreError::Numeric(format!(
+            "robust_sim3: invalid max_error {}",
+            options.max_error
+        )));
     }
     let max_sq = options.max_error * options.max_error;
     let prior_inliers = (options.min_inlier_ratio * TRIAL_CAP_NUM_SAMPLES as f64) as usize;
@@ -435,7 +497,13 @@ pub fn robust_sim3<R: Rng + ?Sized>(
                 if support.num_inliers > MIN_SAMPLE {
                     for _ in 0..options.max_local_refits {
                         inlier_idx.clear();
-                        inlier_idx.extend(best_residuals.iter().enumerate().filter(|(_, r)| **r <= max_sq).map(|(i, _)| i));
+                        inlier_idx.extend(
+                            best_residuals
+                                .iter()
+                                .enumerate()
+                                .filter(|(_, r)| **r <= max_sq)
+                                .map(|(i, _)| i),
+                        );
                         let prev_inliers = best_support.num_inliers;
                         num_local_refits += 1;
                         if let Ok(local) = umeyama_subset(src, tgt, &inlier_idx) {
@@ -453,7 +521,12 @@ pub fn robust_sim3<R: Rng + ?Sized>(
                         }
                     }
                 }
-                dyn_max_trials = compute_num_trials(best_support.num_inliers, n, options.confidence, options.trials_multiplier);
+                dyn_max_trials = compute_num_trials(
+                    best_support.num_inliers,
+                    n,
+                    options.confidence,
+                    options.trials_multiplier,
+                );
             }
             // COLMAP checks dynamic stopping after each evaluated model.
             if trial >= dyn_max_trials {
@@ -538,19 +611,40 @@ pub fn align_with_retries<R: Rng + ?Sized>(
             Err(e) => tracing::debug!("robust Sim(3) with max_error {thr} failed: {e}"),
         }
         // Retry only while the previous threshold was <= 0.3 (NaN stops).
-        if !matches!(thr.partial_cmp(&RETRY_LAST_THRESHOLD), Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)) {
+        if !matches!(
+            thr.partial_cmp(&RETRY_LAST_THRESHOLD),
+            Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)
+        ) {
             break;
         }
         thr *= RETRY_FACTOR;
     }
     match umeyama(src, tgt) {
         Ok(s) => {
-            tracing::warn!("robust Sim(3) failed for every threshold {thresholds_tried:?}; using plain Umeyama");
-            (s, AlignInfo { method: AlignMethod::PlainUmeyama, thresholds_tried, inliers: None, num_inliers: None })
+            tracing::warn!(
+                "robust Sim(3) failed for every threshold {thresholds_tried:?}; using plain Umeyama"
+            );
+            (
+                s,
+                AlignInfo {
+                    method: AlignMethod::PlainUmeyama,
+                    thresholds_tried,
+                    inliers: None,
+                    num_inliers: None,
+                },
+            )
         }
         Err(e) => {
             tracing::warn!("Sim(3) alignment failed completely ({e}); using the identity");
-            (Sim3::identity(), AlignInfo { method: AlignMethod::Identity, thresholds_tried, inliers: None, num_inliers: None })
+            (
+                Sim3::identity(),
+                AlignInfo {
+                    method: AlignMethod::Identity,
+                    thresholds_tried,
+                    inliers: None,
+                    num_inliers: None,
+                },
+            )
         }
     }
 }

@@ -1,9 +1,10 @@
 //! COLMAP model writer / reader (binary and text) and convention conversions.
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 use ggpt_core::Cameras;
 use ggpt_core::io::colmap::{
-    ColmapCamera, ColmapCameraModel, ColmapModel, ColmapPoint2D, ColmapPoint3D, pixel_to_colmap, qvec_to_rotation, read_colmap, rotation_to_qvec,
-    write_colmap,
+    ColmapCamera, ColmapCameraModel, ColmapModel, ColmapPoint2D, ColmapPoint3D, pixel_to_colmap,
+    qvec_to_rotation, read_colmap, rotation_to_qvec, write_colmap,
 };
 use nalgebra::{Matrix3, Matrix3x4, Rotation3, Vector3};
 
@@ -17,7 +18,10 @@ fn cams() -> Cameras {
         m
     };
     Cameras {
-        cam_from_world: vec![mk(r0, Vector3::new(0.1, 0.2, -0.3)), mk(r1, Vector3::new(-1.0, 5.0, 2.0))],
+        cam_from_world: vec![
+            mk(r0, Vector3::new(0.1, 0.2, -0.3)),
+            mk(r1, Vector3::new(-1.0, 5.0, 2.0)),
+        ],
         intrinsics: vec![Matrix3::new(400.0, 0.0, 258.5, 0.0, 401.0, 195.5, 0.0, 0.0, 1.0); 2],
     }
 }
@@ -26,13 +30,34 @@ fn model() -> ColmapModel {
     let names = vec!["000000.jpg".to_string(), "b.png".to_string()];
     let mut m = ColmapModel::from_cameras(&cams(), 392, 518, &names, false, false).unwrap();
     m.images[0].points2d = vec![
-        ColmapPoint2D { xy: pixel_to_colmap([10.0, 20.0]), point3d_id: Some(1) },
-        ColmapPoint2D { xy: [0.1, 1.0 / 3.0], point3d_id: None },
+        ColmapPoint2D {
+            xy: pixel_to_colmap([10.0, 20.0]),
+            point3d_id: Some(1),
+        },
+        ColmapPoint2D {
+            xy: [0.1, 1.0 / 3.0],
+            point3d_id: None,
+        },
     ];
-    m.images[1].points2d = vec![ColmapPoint2D { xy: [5.5, 6.5], point3d_id: Some(1) }];
+    m.images[1].points2d = vec![ColmapPoint2D {
+        xy: [5.5, 6.5],
+        point3d_id: Some(1),
+    }];
     m.points3d = vec![
-        ColmapPoint3D { id: 1, xyz: [1.0, -2.0, 1.0 / 7.0], rgb: [1, 2, 255], error: 0.0, track: vec![(1, 0), (2, 0)] },
-        ColmapPoint3D { id: 7, xyz: [0.0; 3], rgb: [0; 3], error: 0.25, track: vec![] },
+        ColmapPoint3D {
+            id: 1,
+            xyz: [1.0, -2.0, 1.0 / 7.0],
+            rgb: [1, 2, 255],
+            error: 0.0,
+            track: vec![(1, 0), (2, 0)],
+        },
+        ColmapPoint3D {
+            id: 7,
+            xyz: [0.0; 3],
+            rgb: [0; 3],
+            error: 0.25,
+            track: vec![],
+        },
     ];
     m
 }
@@ -65,16 +90,25 @@ fn binary_layout_matches_spec() {
     assert_eq!(&c[24..32], &392u64.to_le_bytes());
     assert_eq!(&c[48..56], &259.0f64.to_le_bytes()); // cx_colmap = cx + 0.5 = w / 2
     let i = std::fs::read(dir.path().join("images.bin")).unwrap();
-    assert_eq!(i.len(), 8 + (4 + 56 + 4 + 11 + 8 + 2 * 24) + (4 + 56 + 4 + 6 + 8 + 24));
+    assert_eq!(
+        i.len(),
+        8 + (4 + 56 + 4 + 11 + 8 + 2 * 24) + (4 + 56 + 4 + 6 + 8 + 24)
+    );
     let p = std::fs::read(dir.path().join("points3D.bin")).unwrap();
-    assert_eq!(p.len(), 8 + (8 + 24 + 3 + 8 + 8 + 16) + (8 + 24 + 3 + 8 + 8));
+    assert_eq!(
+        p.len(),
+        8 + (8 + 24 + 3 + 8 + 8 + 16) + (8 + 24 + 3 + 8 + 8)
+    );
 }
 
 #[test]
 fn cameras_convert_back() {
     let dir = tempfile::tempdir().unwrap();
     write_colmap(dir.path(), &model(), false).unwrap();
-    let (c, names) = read_colmap(dir.path()).unwrap().to_cameras(dir.path()).unwrap();
+    let (c, names) = read_colmap(dir.path())
+        .unwrap()
+        .to_cameras(dir.path())
+        .unwrap();
     assert_eq!(names, vec!["000000.jpg", "b.png"]);
     let want = cams();
     for v in 0..2 {
@@ -91,7 +125,8 @@ fn cameras_convert_back() {
     let q = rotation_to_qvec(&rz);
     assert!((q[0] - q[3]).abs() < 1e-12 && (q[0] - 0.5f64.sqrt()).abs() < 1e-12);
     // Shared SIMPLE_PINHOLE.
-    let m = ColmapModel::from_cameras(&want, 392, 518, &["a".into(), "b".into()], true, true).unwrap();
+    let m =
+        ColmapModel::from_cameras(&want, 392, 518, &["a".into(), "b".into()], true, true).unwrap();
     assert_eq!(m.cameras.len(), 1);
     assert_eq!(m.cameras[0].model, ColmapCameraModel::SimplePinhole);
     assert!(m.images.iter().all(|i| i.camera_id == 1));
@@ -112,14 +147,25 @@ fn reader_accepts_all_models_and_rejects_distortion() {
     let m = read_colmap(dir.path()).unwrap();
     assert_eq!(m.cameras.len(), 6);
     assert_eq!(m.images.len(), 3);
-    assert_eq!(m.images[1].points2d, vec![ColmapPoint2D { xy: [1.5, 2.5], point3d_id: None }]);
+    assert_eq!(
+        m.images[1].points2d,
+        vec![ColmapPoint2D {
+            xy: [1.5, 2.5],
+            point3d_id: None
+        }]
+    );
     assert!(m.images[2].points2d.is_empty());
     for c in &m.cameras[..4] {
         let k = c.to_pinhole().unwrap();
         assert_eq!((k[(0, 2)], k[(1, 2)]), (4.5, 3.5));
     }
     assert!(m.cameras[4].to_pinhole().unwrap_err().contains("FISHEYE"));
-    assert!(m.cameras[5].to_pinhole().unwrap_err().contains("distortion"));
+    assert!(
+        m.cameras[5]
+            .to_pinhole()
+            .unwrap_err()
+            .contains("distortion")
+    );
     let e = m.to_cameras(dir.path()).unwrap_err().to_string();
     assert!(e.contains("[camera 6]") && e.contains("distortion"), "{e}");
 }
@@ -136,7 +182,10 @@ fn prefers_binary_and_rejects_bad_files() {
     let b = std::fs::read(&p).unwrap();
     std::fs::write(&p, &b[..b.len() - 5]).unwrap();
     let e = read_colmap(dir.path()).unwrap_err().to_string();
-    assert!(e.contains("images.bin") && e.contains("[image #1]") && e.contains("truncated"), "{e}");
+    assert!(
+        e.contains("images.bin") && e.contains("[image #1]") && e.contains("truncated"),
+        "{e}"
+    );
     // Huge count.
     let mut b2 = b.clone();
     b2[..8].copy_from_slice(&u64::MAX.to_le_bytes());
@@ -150,17 +199,29 @@ fn prefers_binary_and_rejects_bad_files() {
     c[12..16].copy_from_slice(&11i32.to_le_bytes());
     std::fs::write(&p, &c).unwrap();
     let e = read_colmap(dir.path()).unwrap_err().to_string();
-    assert!(e.contains("cameras.bin") && e.contains("[camera #0]") && e.contains("model id 11"), "{e}");
+    assert!(
+        e.contains("cameras.bin") && e.contains("[camera #0]") && e.contains("model id 11"),
+        "{e}"
+    );
     // Text errors name the line.
     let t = tempfile::tempdir().unwrap();
     std::fs::write(t.path().join("cameras.txt"), "1 PINHOLE 10 8 5 5 4\n").unwrap();
     std::fs::write(t.path().join("images.txt"), "").unwrap();
     std::fs::write(t.path().join("points3D.txt"), "").unwrap();
     let e = read_colmap(t.path()).unwrap_err().to_string();
-    assert!(e.contains("cameras.txt") && e.contains("[line 1]") && e.contains("expects 4"), "{e}");
+    assert!(
+        e.contains("cameras.txt") && e.contains("[line 1]") && e.contains("expects 4"),
+        "{e}"
+    );
     // Writer refuses distortion models.
     let mut m2 = model();
-    m2.cameras[0] = ColmapCamera { id: 1, model: ColmapCameraModel::Opencv, width: 1, height: 1, params: vec![0.0; 8] };
+    m2.cameras[0] = ColmapCamera {
+        id: 1,
+        model: ColmapCameraModel::Opencv,
+        width: 1,
+        height: 1,
+        params: vec![0.0; 8],
+    };
     assert!(write_colmap(t.path(), &m2, false).is_err());
 }
 
@@ -169,16 +230,23 @@ fn prefers_binary_and_rejects_bad_files() {
 #[test]
 fn simple_pinhole_focal_is_the_mean_of_fx_and_fy() {
     let c = cams(); // fx = 400, fy = 401
-    let m = ColmapModel::from_cameras(&c, 392, 518, &["a".into(), "b".into()], true, false).unwrap();
+    let m =
+        ColmapModel::from_cameras(&c, 392, 518, &["a".into(), "b".into()], true, false).unwrap();
     assert_eq!(m.cameras.len(), 2);
     for cam in &m.cameras {
         assert_eq!(cam.model, ColmapCameraModel::SimplePinhole);
         assert_eq!(cam.params, vec![400.5, 259.0, 196.0]);
     }
-    assert_eq!(ggpt_core::io::colmap::simple_pinhole_focal(&c.intrinsics[0]), 400.5);
+    assert_eq!(
+        ggpt_core::io::colmap::simple_pinhole_focal(&c.intrinsics[0]),
+        400.5
+    );
     let dir = tempfile::tempdir().unwrap();
     write_colmap(dir.path(), &m, true).unwrap();
     let back = read_colmap(dir.path()).unwrap();
     let k = back.cameras[0].to_pinhole().unwrap();
-    assert_eq!((k[(0, 0)], k[(1, 1)], k[(0, 2)], k[(1, 2)]), (400.5, 400.5, 258.5, 195.5));
+    assert_eq!(
+        (k[(0, 0)], k[(1, 1)], k[(0, 2)], k[(1, 2)]),
+        (400.5, 400.5, 258.5, 195.5)
+    );
 }

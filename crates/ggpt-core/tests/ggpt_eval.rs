@@ -1,12 +1,13 @@
 //! GGPT_eval raw layout -> ff resolution, against the fixture's `gt.bin` content.
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
 
 use std::path::{Path, PathBuf};
 
 use common::{fixture, fixture_dir};
-use ggpt_core::io::npy::{NpyArray, NpyData, read_npy, write_npy};
 use ggpt_core::io::ggpt_eval::{ff_size, prepare_ff_resolution, read_raw_sequence};
+use ggpt_core::io::npy::{NpyArray, NpyData, read_npy, write_npy};
 use ggpt_core::io::st::StFile;
 
 /// JPEG decoders differ from libjpeg (OpenCV) by a few levels per channel (fixture README: "may
@@ -21,7 +22,10 @@ fn reference() -> StFile {
 
 fn max_abs(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 #[test]
@@ -40,14 +44,33 @@ fn raw_sequence_matches_reference() {
     assert_eq!((raw.n, raw.height, raw.width), (4, 84, 112));
     assert_eq!(raw.name, "synth_room_s0");
     assert_eq!(raw.depths, r.f32("raw/depths", &[4, 84, 112]).unwrap());
-    let e: Vec<f64> = raw.cam_from_world.iter().flat_map(|m| m.transpose().iter().copied().collect::<Vec<_>>()).collect();
+    let e: Vec<f64> = raw
+        .cam_from_world
+        .iter()
+        .flat_map(|m| m.transpose().iter().copied().collect::<Vec<_>>())
+        .collect();
     let re = r.f64("raw/extrinsics", &[4, 4, 4]).unwrap();
     let re34: Vec<f64> = re.chunks_exact(16).flat_map(|m| m[..12].to_vec()).collect();
     assert_eq!(e, re34);
     let ru8 = r.u8("raw/images_u8_decoded", &[4, 84, 112, 3]).unwrap();
-    let diff = raw.images.iter().zip(&ru8).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
-    assert!(diff <= JPEG_DECODER_TOL_U8, "JPEG decode differs from libjpeg by {diff}");
-    let mean = raw.images.iter().zip(&ru8).map(|(a, b)| a.abs_diff(*b) as f64).sum::<f64>() / ru8.len() as f64;
+    let diff = raw
+        .images
+        .iter()
+        .zip(&ru8)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap();
+    assert!(
+        diff <= JPEG_DECODER_TOL_U8,
+        "JPEG decode differs from libjpeg by {diff}"
+    );
+    let mean = raw
+        .images
+        .iter()
+        .zip(&ru8)
+        .map(|(a, b)| a.abs_diff(*b) as f64)
+        .sum::<f64>()
+        / ru8.len() as f64;
     eprintln!("JPEG decode vs libjpeg: max {diff} levels, mean {mean:.3}");
     assert!(mean < 1.0, "mean JPEG decode difference {mean}");
 }
@@ -67,17 +90,38 @@ fn prepare_matches_gt_bin() {
     eprintln!("bilinear resize (reference pixels) max |diff| = {d:e}");
     assert!(d <= 1e-6, "bilinear resize differs by {d}");
     let d = max_abs(&ours.images, &ref_images);
-    eprintln!("resize of our JPEG decode max |diff| = {d:e} ({:.2} u8 levels)", d * 255.0);
-    assert!(d <= JPEG_DECODER_TOL_U8 as f32 / 255.0 + 1e-6, "resize of our JPEG decode differs by {d}");
+    eprintln!(
+        "resize of our JPEG decode max |diff| = {d:e} ({:.2} u8 levels)",
+        d * 255.0
+    );
+    assert!(
+        d <= JPEG_DECODER_TOL_U8 as f32 / 255.0 + 1e-6,
+        "resize of our JPEG decode differs by {d}"
+    );
     let gt = s.gt.as_ref().unwrap();
     assert_eq!(gt.mask, r.bool("gt/point_masks", &[n, h, w]).unwrap());
-    let k: Vec<f32> = gt.cameras.intrinsics.iter().flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>()).collect();
+    let k: Vec<f32> = gt
+        .cameras
+        .intrinsics
+        .iter()
+        .flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>())
+        .collect();
     let rk = r.f32("gt/intrinsics", &[n, 3, 3]).unwrap();
     for (a, b) in k.iter().zip(&rk) {
         assert!((a - b).abs() <= 1e-6 * b.abs().max(1.0), "K {a} vs {b}");
     }
-    let ext: Vec<f32> = gt.cameras.cam_from_world.iter().flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>()).collect();
-    let rext: Vec<f32> = r.f32("gt/extrinsics", &[n, 4, 4]).unwrap().chunks_exact(16).flat_map(|m| m[..12].to_vec()).collect();
+    let ext: Vec<f32> = gt
+        .cameras
+        .cam_from_world
+        .iter()
+        .flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>())
+        .collect();
+    let rext: Vec<f32> = r
+        .f32("gt/extrinsics", &[n, 4, 4])
+        .unwrap()
+        .chunks_exact(16)
+        .flat_map(|m| m[..12].to_vec())
+        .collect();
     assert_eq!(ext, rext);
     // Points: the official unprojection runs in f32 (einsum), ours in f64; points are a few
     // metres from the origin, so f32 rounding of the chain is ~1e-6 m; allow 1e-5 m.
@@ -87,7 +131,12 @@ fn prepare_matches_gt_bin() {
     assert!(d <= 1e-5, "GT points differ by {d} m");
     assert!(rp.iter().any(|&x| x != 0.0));
     // Zeros exactly where the reference has zeros.
-    for (p, (a, b)) in gt.points.chunks_exact(3).zip(rp.chunks_exact(3)).enumerate() {
+    for (p, (a, b)) in gt
+        .points
+        .chunks_exact(3)
+        .zip(rp.chunks_exact(3))
+        .enumerate()
+    {
         assert_eq!(a == [0.0; 3], b == [0.0; 3], "pixel {p}");
     }
 }
@@ -112,13 +161,19 @@ fn rejects_bad_layouts() {
     }
     write_npy(&seq.join("intrinsics.npy"), &k).unwrap();
     let e = read_raw_sequence(&seq).unwrap_err().to_string();
-    assert!(e.contains("intrinsics.npy") && e.contains("[view 1]") && e.contains("centred"), "{e}");
+    assert!(
+        e.contains("intrinsics.npy") && e.contains("[view 1]") && e.contains("centred"),
+        "{e}"
+    );
     // Wrong pose count.
     let ext = read_npy(&fixture("extrinsics.npy")).unwrap();
-    let short = NpyArray::new(vec![3, 4, 4], match ext.data {
-        NpyData::F64(v) => NpyData::F64(v[..48].to_vec()),
-        _ => unreachable!(),
-    })
+    let short = NpyArray::new(
+        vec![3, 4, 4],
+        match ext.data {
+            NpyData::F64(v) => NpyData::F64(v[..48].to_vec()),
+            _ => unreachable!(),
+        },
+    )
     .unwrap();
     write_npy(&seq.join("extrinsics.npy"), &short).unwrap();
     let e = read_raw_sequence(&seq).unwrap_err().to_string();
@@ -139,17 +194,34 @@ fn sequence_copy() -> (tempfile::TempDir, PathBuf) {
         std::fs::copy(fixture(f), seq.join(f)).unwrap();
     }
     for i in 0..4 {
-        std::fs::copy(fixture(&format!("images/{i:06}.jpg")), seq.join(format!("images/{i:06}.jpg"))).unwrap();
-        std::fs::copy(fixture(&format!("depths/{i:06}.npy")), seq.join(format!("depths/{i:06}.npy"))).unwrap();
+        std::fs::copy(
+            fixture(&format!("images/{i:06}.jpg")),
+            seq.join(format!("images/{i:06}.jpg")),
+        )
+        .unwrap();
+        std::fs::copy(
+            fixture(&format!("depths/{i:06}.npy")),
+            seq.join(format!("depths/{i:06}.npy")),
+        )
+        .unwrap();
     }
-    assert!(read_raw_sequence(&seq).is_ok(), "the unmodified copy must read");
+    assert!(
+        read_raw_sequence(&seq).is_ok(),
+        "the unmodified copy must read"
+    );
     (dir, seq)
 }
 
 /// The error of reading `seq`, checked to name `file` (full path as displayed).
 fn error_naming(seq: &Path, file: &Path) -> String {
-    let e = read_raw_sequence(seq).expect_err("bad input must be rejected").to_string();
-    assert!(e.contains(&file.display().to_string()), "error does not name {}: {e}", file.display());
+    let e = read_raw_sequence(seq)
+        .expect_err("bad input must be rejected")
+        .to_string();
+    assert!(
+        e.contains(&file.display().to_string()),
+        "error does not name {}: {e}",
+        file.display()
+    );
     e
 }
 
@@ -173,7 +245,10 @@ fn edit_floats(path: &Path, edit: impl FnOnce(&mut Vec<f64>)) {
 /// `.npy` bytes with an arbitrary descriptor (for dtypes `write_npy` cannot produce).
 fn raw_npy(descr: &str, shape: &[usize], payload: &[u8]) -> Vec<u8> {
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
-    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': ({}), }}", dims.join(", "));
+    let mut header = format!(
+        "{{'descr': '{descr}', 'fortran_order': False, 'shape': ({}), }}",
+        dims.join(", ")
+    );
     while (10 + header.len() + 1) % 64 != 0 {
         header.push(' ');
     }
@@ -196,7 +271,10 @@ fn rejects_non_finite_depth() {
     let p = depth_path(&seq, 0);
     edit_floats(&p, |v| v[83 * 112 + 111] = f64::NEG_INFINITY);
     let e = error_naming(&seq, &p);
-    assert!(e.contains("non-finite depth -inf at row 83, column 111"), "{e}");
+    assert!(
+        e.contains("non-finite depth -inf at row 83, column 111"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -206,22 +284,34 @@ fn rejects_non_finite_cameras() {
     let p = seq.join("extrinsics.npy");
     edit_floats(&p, |v| v[2 * 16 + 4 + 3] = f64::INFINITY);
     let e = error_naming(&seq, &p);
-    assert!(e.contains("[view 2]") && e.contains("non-finite value inf at row 1, column 3"), "{e}");
+    assert!(
+        e.contains("[view 2]") && e.contains("non-finite value inf at row 1, column 3"),
+        "{e}"
+    );
     std::fs::copy(fixture("extrinsics.npy"), &p).unwrap();
     // NaN in the last row is reported as non-finite too (not as a bad homogeneous row).
     edit_floats(&p, |v| v[15] = f64::NAN);
     let e = error_naming(&seq, &p);
-    assert!(e.contains("[view 0]") && e.contains("non-finite value NaN at row 3, column 3"), "{e}");
+    assert!(
+        e.contains("[view 0]") && e.contains("non-finite value NaN at row 3, column 3"),
+        "{e}"
+    );
     std::fs::copy(fixture("extrinsics.npy"), &p).unwrap();
     // Intrinsics: view 3, fx = NaN; view 1, cy = -inf.
     let p = seq.join("intrinsics.npy");
     edit_floats(&p, |v| v[3 * 9] = f64::NAN);
     let e = error_naming(&seq, &p);
-    assert!(e.contains("[view 3]") && e.contains("non-finite value NaN at row 0, column 0"), "{e}");
+    assert!(
+        e.contains("[view 3]") && e.contains("non-finite value NaN at row 0, column 0"),
+        "{e}"
+    );
     std::fs::copy(fixture("intrinsics.npy"), &p).unwrap();
     edit_floats(&p, |v| v[9 + 5] = f64::NEG_INFINITY);
     let e = error_naming(&seq, &p);
-    assert!(e.contains("[view 1]") && e.contains("non-finite value -inf at row 1, column 2"), "{e}");
+    assert!(
+        e.contains("[view 1]") && e.contains("non-finite value -inf at row 1, column 2"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -230,13 +320,26 @@ fn rejects_wrong_dtypes() {
     // Depth saved as int32 (e.g. millimetres).
     let p = depth_path(&seq, 1);
     let d = read_npy(&p).unwrap();
-    let mm: Vec<i32> = d.to_f32().unwrap().iter().map(|&z| (z * 1000.0) as i32).collect();
-    write_npy(&p, &NpyArray::new(d.shape.clone(), NpyData::I32(mm)).unwrap()).unwrap();
+    let mm: Vec<i32> = d
+        .to_f32()
+        .unwrap()
+        .iter()
+        .map(|&z| (z * 1000.0) as i32)
+        .collect();
+    write_npy(
+        &p,
+        &NpyArray::new(d.shape.clone(), NpyData::I32(mm)).unwrap(),
+    )
+    .unwrap();
     let e = error_naming(&seq, &p);
     assert!(e.contains("wrong dtype <i4") && e.contains("<f4"), "{e}");
     // Depth saved as float64 is accepted (values rounded to f32 are the fixture's exactly).
     let f64s: Vec<f64> = d.to_f64().unwrap();
-    write_npy(&p, &NpyArray::new(d.shape.clone(), NpyData::F64(f64s)).unwrap()).unwrap();
+    write_npy(
+        &p,
+        &NpyArray::new(d.shape.clone(), NpyData::F64(f64s)).unwrap(),
+    )
+    .unwrap();
     let raw = read_raw_sequence(&seq).unwrap();
     assert_eq!(raw.depths[84 * 112..2 * 84 * 112], d.to_f32().unwrap()[..]);
     std::fs::copy(fixture("depths/000001.npy"), &p).unwrap();
@@ -246,13 +349,21 @@ fn rejects_wrong_dtypes() {
     let e = error_naming(&seq, &p);
     assert!(e.contains("unsupported dtype descriptor '<f2'"), "{e}");
     // Extrinsics as int32: a readable dtype, but not a float one.
-    write_npy(&p, &NpyArray::new(vec![4, 4, 4], NpyData::I32(vec![0; 64])).unwrap()).unwrap();
+    write_npy(
+        &p,
+        &NpyArray::new(vec![4, 4, 4], NpyData::I32(vec![0; 64])).unwrap(),
+    )
+    .unwrap();
     let e = error_naming(&seq, &p);
     assert!(e.contains("wrong dtype <i4, expected <f4 or <f8"), "{e}");
     std::fs::copy(fixture("extrinsics.npy"), &p).unwrap();
     // Intrinsics as uint8.
     let p = seq.join("intrinsics.npy");
-    write_npy(&p, &NpyArray::new(vec![4, 3, 3], NpyData::U8(vec![1; 36])).unwrap()).unwrap();
+    write_npy(
+        &p,
+        &NpyArray::new(vec![4, 3, 3], NpyData::U8(vec![1; 36])).unwrap(),
+    )
+    .unwrap();
     let e = error_naming(&seq, &p);
     assert!(e.contains("wrong dtype |u1, expected <f4 or <f8"), "{e}");
 }
@@ -263,9 +374,18 @@ fn rejects_depth_of_another_size() {
     let p = depth_path(&seq, 3);
     for shape in [vec![84, 111], vec![112, 84], vec![1, 84, 112]] {
         let numel = shape.iter().product();
-        write_npy(&p, &NpyArray::new(shape.clone(), NpyData::F32(vec![1.0; numel])).unwrap()).unwrap();
+        write_npy(
+            &p,
+            &NpyArray::new(shape.clone(), NpyData::F32(vec![1.0; numel])).unwrap(),
+        )
+        .unwrap();
         let e = error_naming(&seq, &p);
-        assert!(e.contains(&format!("depth shape {shape:?} differs from the image size [84, 112]")), "{e}");
+        assert!(
+            e.contains(&format!(
+                "depth shape {shape:?} differs from the image size [84, 112]"
+            )),
+            "{e}"
+        );
     }
 }
 
@@ -273,22 +393,39 @@ fn rejects_depth_of_another_size() {
 fn rejects_images_of_different_sizes() {
     let (_tmp, seq) = sequence_copy();
     let p = seq.join("images/000002.jpg");
-    let img = image::open(&p).unwrap().resize_exact(56, 42, image::imageops::FilterType::Triangle).to_rgb8();
+    let img = image::open(&p)
+        .unwrap()
+        .resize_exact(56, 42, image::imageops::FilterType::Triangle)
+        .to_rgb8();
     img.save(&p).unwrap();
-    assert_eq!(image::open(&p).unwrap().width(), 56, "the smaller JPEG must have been written");
+    assert_eq!(
+        image::open(&p).unwrap().width(),
+        56,
+        "the smaller JPEG must have been written"
+    );
     let e = error_naming(&seq, &p);
-    assert!(e.contains("image is 56x42, view 0 is 112x84") && e.contains("one size"), "{e}");
+    assert!(
+        e.contains("image is 56x42, view 0 is 112x84") && e.contains("one size"),
+        "{e}"
+    );
 }
 
 #[test]
 fn rejects_truncated_npy() {
     let (_tmp, seq) = sequence_copy();
-    for (file, fixture_name) in [(depth_path(&seq, 1), "depths/000001.npy"), (seq.join("extrinsics.npy"), "extrinsics.npy"), (seq.join("intrinsics.npy"), "intrinsics.npy")] {
+    for (file, fixture_name) in [
+        (depth_path(&seq, 1), "depths/000001.npy"),
+        (seq.join("extrinsics.npy"), "extrinsics.npy"),
+        (seq.join("intrinsics.npy"), "intrinsics.npy"),
+    ] {
         let full = std::fs::read(fixture(fixture_name)).unwrap();
         // Data cut short by one value's worth of bytes (the header is intact).
         std::fs::write(&file, &full[..full.len() - 4]).unwrap();
         let e = error_naming(&seq, &file);
-        assert!(e.contains("truncated: data has") && e.contains("needs"), "{e}");
+        assert!(
+            e.contains("truncated: data has") && e.contains("needs"),
+            "{e}"
+        );
         // Cut inside the header dict.
         std::fs::write(&file, &full[..40]).unwrap();
         let e = error_naming(&seq, &file);
@@ -311,7 +448,10 @@ fn rejects_skewed_intrinsics() {
     for (j, value) in [(1, 0.5), (6, 1e-3), (8, 2.0)] {
         edit_floats(&p, |v| v[9 + j] = value); // view 1: skew, K[2,0], K[2,2]
         let e = error_naming(&seq, &p);
-        assert!(e.contains("[view 1]") && e.contains("not a pinhole K"), "{e}");
+        assert!(
+            e.contains("[view 1]") && e.contains("not a pinhole K"),
+            "{e}"
+        );
         std::fs::copy(fixture("intrinsics.npy"), &p).unwrap();
     }
 }
@@ -322,7 +462,10 @@ fn prepare_rejects_inconsistent_raw_sequence() {
     let mut short = raw.clone();
     short.depths.pop();
     let e = prepare_ff_resolution(&short, 56).unwrap_err().to_string();
-    assert!(e.contains("synth_room_s0") && e.contains("depths has 37631 entries, expected 37632"), "{e}");
+    assert!(
+        e.contains("synth_room_s0") && e.contains("depths has 37631 entries, expected 37632"),
+        "{e}"
+    );
     let mut short = raw.clone();
     short.intrinsics.pop();
     let e = prepare_ff_resolution(&short, 56).unwrap_err().to_string();

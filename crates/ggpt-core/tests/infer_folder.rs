@@ -1,4 +1,5 @@
 //! formats.md §5.1 scene folder (ff.npz / sfm.npz / matches/ / official .bin mix-ins).
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
 
@@ -13,7 +14,12 @@ fn expected(mut s: ggpt_core::Scene) -> ggpt_core::Scene {
     s.gt = None;
     s.name = "scn".into();
     for m in &mut s.matches {
-        let mut f = MatchFile { set: m.clone(), n: d.n, h: d.h, w: d.w };
+        let mut f = MatchFile {
+            set: m.clone(),
+            n: d.n,
+            h: d.h,
+            w: d.w,
+        };
         apply_diagonal(&mut f);
         *m = f.set;
     }
@@ -29,10 +35,19 @@ fn roundtrip_through_npz_folder() {
     assert_eq!(read_scene(&p).unwrap(), expected(s.clone()));
     // Without images in ff.npz the PNG files of images/ are used (u8 quantised).
     let z = read_npz(&p.join("ff.npz")).unwrap();
-    let keep: Vec<(&str, &ggpt_core::io::npy::NpyArray)> = z.iter().filter(|(k, _)| *k != "images").map(|(k, a)| (k.as_str(), a)).collect();
+    let keep: Vec<(&str, &ggpt_core::io::npy::NpyArray)> = z
+        .iter()
+        .filter(|(k, _)| *k != "images")
+        .map(|(k, a)| (k.as_str(), a))
+        .collect();
     write_npz(&p.join("ff.npz"), &keep, true).unwrap();
     let back = read_scene(&p).unwrap();
-    let d = back.images.iter().zip(&s.images).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    let d = back
+        .images
+        .iter()
+        .zip(&s.images)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
     assert!(d <= 0.5 / 255.0 + 1e-6, "{d}");
 }
 
@@ -51,7 +66,10 @@ fn requires_matches_or_sfm_and_checks_principal_point() {
     s.ff.as_mut().unwrap().cameras.intrinsics[1][(0, 2)] += 0.01;
     write_infer_folder(&p, &s).unwrap();
     let e = read_scene(&p).unwrap_err().to_string();
-    assert!(e.contains("ff.npz") && e.contains("[K]") && e.contains("view 1"), "{e}");
+    assert!(
+        e.contains("ff.npz") && e.contains("[K]") && e.contains("view 1"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -62,7 +80,10 @@ fn mismatched_dims_across_files() {
     // The official gt.bin of the fixture is 4 x 42 x 56.
     std::fs::copy(fixture("gt.bin"), p.join("gt.bin")).unwrap();
     let e = read_scene(&p).unwrap_err().to_string();
-    assert!(e.contains("gt.bin") && e.contains("[points]") && e.contains("N=4 h=42 w=56"), "{e}");
+    assert!(
+        e.contains("gt.bin") && e.contains("[points]") && e.contains("N=4 h=42 w=56"),
+        "{e}"
+    );
     std::fs::remove_file(p.join("gt.bin")).unwrap();
     // sfm.npz of another resolution.
     write_infer_folder(&dir.path().join("other"), &full_scene(2, 4, 3)).unwrap();
@@ -70,10 +91,17 @@ fn mismatched_dims_across_files() {
     let e = read_scene(&p).unwrap_err().to_string();
     assert!(e.contains("sfm.npz") && e.contains("[points]"), "{e}");
     // Matches of another resolution.
-    std::fs::copy(dir.path().join("other/matches/romav2-base.safetensors"), p.join("matches/romav2-base.safetensors")).unwrap();
+    std::fs::copy(
+        dir.path().join("other/matches/romav2-base.safetensors"),
+        p.join("matches/romav2-base.safetensors"),
+    )
+    .unwrap();
     std::fs::remove_file(p.join("sfm.npz")).unwrap();
     let e = read_scene(&p).unwrap_err().to_string();
-    assert!(e.contains("romav2-base.safetensors") && e.contains("[pred_matches]"), "{e}");
+    assert!(
+        e.contains("romav2-base.safetensors") && e.contains("[pred_matches]"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -90,7 +118,10 @@ fn wrong_dtype_and_nan_in_npz() {
     let arrays: Vec<_> = z.iter().map(|(k, a)| (k.as_str(), a)).collect();
     write_npz(&p.join("ff.npz"), &arrays, false).unwrap();
     let e = read_scene(&p).unwrap_err().to_string();
-    assert!(e.contains("ff.npz") && e.contains("[conf]") && e.contains("dtype"), "{e}");
+    assert!(
+        e.contains("ff.npz") && e.contains("[conf]") && e.contains("dtype"),
+        "{e}"
+    );
     let mut z = read_npz(&p.join("ff.npz")).unwrap();
     if let Some(a) = z.get_mut("conf") {
         a.data = NpyData::F32(vec![f32::NAN; 24]);
@@ -98,13 +129,19 @@ fn wrong_dtype_and_nan_in_npz() {
     let arrays: Vec<_> = z.iter().map(|(k, a)| (k.as_str(), a)).collect();
     write_npz(&p.join("ff.npz"), &arrays, false).unwrap();
     let e = read_scene(&p).unwrap_err().to_string();
-    assert!(e.contains("ff.npz") && e.contains("[conf]") && e.contains("non-finite"), "{e}");
+    assert!(
+        e.contains("ff.npz") && e.contains("[conf]") && e.contains("non-finite"),
+        "{e}"
+    );
     let mut z = read_npz(&p.join("ff.npz")).unwrap();
     z.remove("conf");
     let arrays: Vec<_> = z.iter().map(|(k, a)| (k.as_str(), a)).collect();
     write_npz(&p.join("ff.npz"), &arrays, false).unwrap();
     let e = read_scene(&p).unwrap_err().to_string();
-    assert!(e.contains("ff.npz") && e.contains("[conf]") && e.contains("missing"), "{e}");
+    assert!(
+        e.contains("ff.npz") && e.contains("[conf]") && e.contains("missing"),
+        "{e}"
+    );
 }
 
 #[test]

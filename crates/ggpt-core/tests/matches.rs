@@ -1,4 +1,5 @@
 //! `matches/<matcher>.safetensors` (formats.md §5.2).
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
 
@@ -25,13 +26,19 @@ fn roundtrip_raw_and_diagonal_convention() {
                 for k in 0..hw {
                     let i = (t * 3 + sv) * hw + k;
                     if t == sv {
-                        assert_eq!(&f.set.pred_matches[2 * i..2 * i + 2], &[(k % 5) as f32, (k / 5) as f32]);
+                        assert_eq!(
+                            &f.set.pred_matches[2 * i..2 * i + 2],
+                            &[(k % 5) as f32, (k / 5) as f32]
+                        );
                         assert_eq!(f.set.pred_scores[i], 1.0);
                         if let Some(c) = &f.set.pred_cycle_error {
                             assert_eq!(c[i], 0.0);
                         }
                     } else {
-                        assert_eq!(&f.set.pred_matches[2 * i..2 * i + 2], &m.pred_matches[2 * i..2 * i + 2]);
+                        assert_eq!(
+                            &f.set.pred_matches[2 * i..2 * i + 2],
+                            &m.pred_matches[2 * i..2 * i + 2]
+                        );
                         assert_eq!(f.set.pred_scores[i], m.pred_scores[i]);
                     }
                 }
@@ -44,7 +51,10 @@ fn write_raw(p: &std::path::Path, matches: &[f32], n: usize, hw: usize, meta: &[
     let mut w = StWriter::new();
     w.f32("pred_matches", &[n, n, hw, 2], matches);
     w.f32("pred_scores", &[n, n, hw], &vec![0.5; n * n * hw]);
-    let meta: HashMap<String, String> = meta.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect();
+    let meta: HashMap<String, String> = meta
+        .iter()
+        .map(|(k, v)| (k.to_string(), v.to_string()))
+        .collect();
     std::fs::write(p, w.finish(p, Some(meta)).unwrap()).unwrap();
 }
 
@@ -57,10 +67,24 @@ fn normalized_edge_conversion() {
     let i = 2 * 8; // [t=1, s=0, k=0] = (t * N + s) * hw
     m[2 * i..2 * i + 2].copy_from_slice(&[-1.0, 1.0]);
     m[2 * (i + 1)..2 * (i + 1) + 2].copy_from_slice(&[0.0, 0.0]);
-    write_raw(&p, &m, 2, 8, &[("height", "2"), ("width", "4"), ("coords", "normalized-edge"), ("matcher", "romav2-base")]);
+    write_raw(
+        &p,
+        &m,
+        2,
+        8,
+        &[
+            ("height", "2"),
+            ("width", "4"),
+            ("coords", "normalized-edge"),
+            ("matcher", "romav2-base"),
+        ],
+    );
     let f = read_matches(&p).unwrap();
     assert_eq!(f.set.matcher, "romav2-base");
-    assert_eq!(&f.set.pred_matches[2 * i..2 * i + 4], &[-0.5, 1.5, 1.5, 0.5]);
+    assert_eq!(
+        &f.set.pred_matches[2 * i..2 * i + 4],
+        &[-0.5, 1.5, 1.5, 0.5]
+    );
 }
 
 #[test]
@@ -70,11 +94,20 @@ fn rejects_bad_files() {
     let m = vec![0.0f32; 2 * 2 * 8 * 2];
     write_raw(&p, &m, 2, 8, &[("height", "3"), ("width", "4")]);
     let e = read_matches(&p).unwrap_err().to_string();
-    assert!(e.contains("bad.safetensors") && e.contains("[pred_matches]") && e.contains("h*w=12"), "{e}");
+    assert!(
+        e.contains("bad.safetensors") && e.contains("[pred_matches]") && e.contains("h*w=12"),
+        "{e}"
+    );
     write_raw(&p, &m, 2, 8, &[("width", "4")]);
     let e = read_matches(&p).unwrap_err().to_string();
     assert!(e.contains("[height]"), "{e}");
-    write_raw(&p, &m, 2, 8, &[("height", "2"), ("width", "4"), ("coords", "weird")]);
+    write_raw(
+        &p,
+        &m,
+        2,
+        8,
+        &[("height", "2"), ("width", "4"), ("coords", "weird")],
+    );
     let e = read_matches(&p).unwrap_err().to_string();
     assert!(e.contains("[coords]") && e.contains("weird"), "{e}");
     // Name falls back to the file stem.
@@ -86,11 +119,22 @@ fn rejects_bad_files() {
     let mut sc = vec![0.5f32; 32];
     sc[3] = f32::NAN;
     w.f32("pred_scores", &[2, 2, 8], &sc);
-    let meta = HashMap::from([("height".to_string(), "2".to_string()), ("width".to_string(), "4".to_string())]);
+    let meta = HashMap::from([
+        ("height".to_string(), "2".to_string()),
+        ("width".to_string(), "4".to_string()),
+    ]);
     std::fs::write(&p, w.finish(&p, Some(meta)).unwrap()).unwrap();
     let e = read_matches(&p).unwrap_err().to_string();
-    assert!(e.contains("[pred_scores]") && e.contains("non-finite"), "{e}");
+    assert!(
+        e.contains("[pred_scores]") && e.contains("non-finite"),
+        "{e}"
+    );
     // Writer checks lengths.
     let s = full_scene(2, 3, 4);
-    assert!(write_matches(&p, &s.matches[0], 2, 3, 5).unwrap_err().to_string().contains("[pred_matches]"));
+    assert!(
+        write_matches(&p, &s.matches[0], 2, 3, 5)
+            .unwrap_err()
+            .to_string()
+            .contains("[pred_matches]")
+    );
 }

@@ -1,9 +1,12 @@
 //! Official torch-pickle scene dicts against `reference.safetensors` (exact equality).
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
 
 use common::{fixture, fixture_dir, full_scene};
-use ggpt_core::io::official::{read_ff_outputs_bin, read_gt_bin, read_sfm_dlt_outputs_bin, write_official_safetensors};
+use ggpt_core::io::official::{
+    read_ff_outputs_bin, read_gt_bin, read_sfm_dlt_outputs_bin, write_official_safetensors,
+};
 use ggpt_core::io::scene_dir::read_scene;
 use ggpt_core::io::st::StFile;
 
@@ -21,11 +24,23 @@ fn gt_bin_matches_reference_exactly() {
     let g = read_gt_bin(&fixture("gt.bin")).unwrap();
     let (n, h, w) = (g.dims.n, g.dims.h, g.dims.w);
     assert_eq!((n, h, w), (4, 42, 56));
-    assert_eq!(bits(&g.points), bits(&r.f32("gt/points", &[n, h, w, 3]).unwrap()));
+    assert_eq!(
+        bits(&g.points),
+        bits(&r.f32("gt/points", &[n, h, w, 3]).unwrap())
+    );
     assert_eq!(g.point_masks, r.bool("gt/point_masks", &[n, h, w]).unwrap());
-    assert_eq!(bits(&g.intrinsics), bits(&r.f32("gt/intrinsics", &[n, 3, 3]).unwrap()));
-    assert_eq!(bits(&g.extrinsics), bits(&r.f32("gt/extrinsics", &[n, 4, 4]).unwrap()));
-    assert_eq!(bits(&g.images), bits(&r.f32("gt/images", &[n, h, w, 3]).unwrap()));
+    assert_eq!(
+        bits(&g.intrinsics),
+        bits(&r.f32("gt/intrinsics", &[n, 3, 3]).unwrap())
+    );
+    assert_eq!(
+        bits(&g.extrinsics),
+        bits(&r.f32("gt/extrinsics", &[n, 4, 4]).unwrap())
+    );
+    assert_eq!(
+        bits(&g.images),
+        bits(&r.f32("gt/images", &[n, h, w, 3]).unwrap())
+    );
     // The strided points view really is non-trivial: some valid points differ from zero.
     assert!(g.points.iter().any(|&x| x != 0.0) && g.point_masks.iter().any(|&m| !m));
 }
@@ -35,11 +50,26 @@ fn ff_outputs_bin_matches_reference_exactly() {
     let r = reference();
     let f = read_ff_outputs_bin(&fixture("ff_outputs.bin")).unwrap();
     let (n, h, w) = (f.dims.n, f.dims.h, f.dims.w);
-    assert_eq!(bits(&f.images_ff), bits(&r.f32("ff_outputs/images_ff", &[n, h, w, 3]).unwrap()));
-    assert_eq!(bits(&f.extrinsics), bits(&r.f32("ff_outputs/extrinsics", &[n, 3, 4]).unwrap()));
-    assert_eq!(bits(&f.intrinsics), bits(&r.f32("ff_outputs/intrinsics", &[n, 3, 3]).unwrap()));
-    assert_eq!(bits(&f.points), bits(&r.f32("ff_outputs/points", &[n, h, w, 3]).unwrap()));
-    assert_eq!(bits(&f.points_conf), bits(&r.f32("ff_outputs/points_conf", &[n, h, w]).unwrap()));
+    assert_eq!(
+        bits(&f.images_ff),
+        bits(&r.f32("ff_outputs/images_ff", &[n, h, w, 3]).unwrap())
+    );
+    assert_eq!(
+        bits(&f.extrinsics),
+        bits(&r.f32("ff_outputs/extrinsics", &[n, 3, 4]).unwrap())
+    );
+    assert_eq!(
+        bits(&f.intrinsics),
+        bits(&r.f32("ff_outputs/intrinsics", &[n, 3, 3]).unwrap())
+    );
+    assert_eq!(
+        bits(&f.points),
+        bits(&r.f32("ff_outputs/points", &[n, h, w, 3]).unwrap())
+    );
+    assert_eq!(
+        bits(&f.points_conf),
+        bits(&r.f32("ff_outputs/points_conf", &[n, h, w]).unwrap())
+    );
 }
 
 #[test]
@@ -47,12 +77,30 @@ fn sfm_dlt_outputs_bin_matches_reference_exactly() {
     let r = reference();
     let s = read_sfm_dlt_outputs_bin(&fixture("sfm_dlt_outputs.bin")).unwrap();
     let (n, h, w) = (s.dims.n, s.dims.h, s.dims.w);
-    assert_eq!(bits(&s.intrinsics), bits(&r.f32("sfm_dlt_outputs/intrinsics", &[n, 3, 3]).unwrap()));
-    assert_eq!(bits(&s.extrinsics), bits(&r.f32("sfm_dlt_outputs/extrinsics", &[n, 3, 4]).unwrap()));
-    assert_eq!(bits(&s.points), bits(&r.f32("sfm_dlt_outputs/points", &[n, h, w, 3]).unwrap()));
-    assert_eq!(s.point_masks, r.bool("sfm_dlt_outputs/point_masks", &[n, h, w]).unwrap());
-    assert_eq!(s.camera_success, r.scalar_bool("sfm_dlt_outputs/camera_success").unwrap());
-    assert_eq!(s.points_success, r.scalar_bool("sfm_dlt_outputs/points_success").unwrap());
+    assert_eq!(
+        bits(&s.intrinsics),
+        bits(&r.f32("sfm_dlt_outputs/intrinsics", &[n, 3, 3]).unwrap())
+    );
+    assert_eq!(
+        bits(&s.extrinsics),
+        bits(&r.f32("sfm_dlt_outputs/extrinsics", &[n, 3, 4]).unwrap())
+    );
+    assert_eq!(
+        bits(&s.points),
+        bits(&r.f32("sfm_dlt_outputs/points", &[n, h, w, 3]).unwrap())
+    );
+    assert_eq!(
+        s.point_masks,
+        r.bool("sfm_dlt_outputs/point_masks", &[n, h, w]).unwrap()
+    );
+    assert_eq!(
+        s.camera_success,
+        r.scalar_bool("sfm_dlt_outputs/camera_success").unwrap()
+    );
+    assert_eq!(
+        s.points_success,
+        r.scalar_bool("sfm_dlt_outputs/points_success").unwrap()
+    );
 }
 
 #[test]
@@ -78,7 +126,10 @@ fn official_dir_to_scene_and_reference_writer() {
     let s = full_scene(2, 3, 4);
     write_official_safetensors(&out, &s).unwrap();
     let f = StFile::open(&out).unwrap();
-    assert_eq!(bits(&f.f32("ff_outputs/points", &[2, 3, 4, 3]).unwrap()), bits(&s.ff.as_ref().unwrap().points));
+    assert_eq!(
+        bits(&f.f32("ff_outputs/points", &[2, 3, 4, 3]).unwrap()),
+        bits(&s.ff.as_ref().unwrap().points)
+    );
     assert!(!f.scalar_bool("sfm_dlt_outputs/points_success").unwrap());
 }
 
@@ -92,7 +143,10 @@ fn corrupt_and_truncated_pickles_name_the_file() {
     assert!(e.contains("ff_outputs.bin"), "{e}");
     std::fs::write(&p, b"PK\x03\x04 this is not a zip").unwrap();
     let e = read_ff_outputs_bin(&p).unwrap_err().to_string();
-    assert!(e.contains("ff_outputs.bin") && e.contains("torch pickle"), "{e}");
+    assert!(
+        e.contains("ff_outputs.bin") && e.contains("torch pickle"),
+        "{e}"
+    );
     // Flip bytes inside the stored data of the points storage (crc mismatch in the zip).
     let mut b = bytes.clone();
     let mid = b.len() / 2;
@@ -103,7 +157,9 @@ fn corrupt_and_truncated_pickles_name_the_file() {
     let e = read_ff_outputs_bin(&p).unwrap_err().to_string();
     assert!(e.contains("ff_outputs.bin"), "{e}");
     // Wrong file for the reader: gt.bin lacks `points_conf`.
-    let e = read_ff_outputs_bin(&fixture("gt.bin")).unwrap_err().to_string();
+    let e = read_ff_outputs_bin(&fixture("gt.bin"))
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("gt.bin") && e.contains("[images_ff]"), "{e}");
 }
 

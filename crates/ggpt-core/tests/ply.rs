@@ -1,4 +1,5 @@
 //! PLY writer / reader.
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 use ggpt_core::io::ply::{PlyCloud, read_ply, write_ply};
 
@@ -69,12 +70,20 @@ fn rejects_bad_files() {
     let b = std::fs::read(&p).unwrap();
     std::fs::write(&p, &b[..b.len() - 3]).unwrap();
     let e = read_ply(&p).unwrap_err().to_string();
-    assert!(e.contains("bad.ply") && e.contains("truncated") && e.contains("[confidence]"), "{e}");
+    assert!(
+        e.contains("bad.ply") && e.contains("truncated") && e.contains("[confidence]"),
+        "{e}"
+    );
     std::fs::write(&p, &b[..40]).unwrap();
     assert!(read_ply(&p).unwrap_err().to_string().contains("[header]"));
     let s = "ply\nformat binary_big_endian 1.0\nelement vertex 0\nend_header\n";
     std::fs::write(&p, s).unwrap();
-    assert!(read_ply(&p).unwrap_err().to_string().contains("binary_big_endian"));
+    assert!(
+        read_ply(&p)
+            .unwrap_err()
+            .to_string()
+            .contains("binary_big_endian")
+    );
     let s = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\nend_header\n1 2 3 4 5\n";
     std::fs::write(&p, s).unwrap();
     let e = read_ply(&p).unwrap_err().to_string();

@@ -1,11 +1,14 @@
 //! Project scene directory: lossless round trip and rejection of every bad-input class.
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
 
 use std::path::Path;
 
 use common::full_scene;
-use ggpt_core::io::scene_dir::{self, MANIFEST, Manifest, TENSORS, read_manifest, read_scene, write_scene};
+use ggpt_core::io::scene_dir::{
+    self, MANIFEST, Manifest, TENSORS, read_manifest, read_scene, write_scene,
+};
 use ggpt_core::io::st::{Dtype, StFile, StWriter};
 
 fn written() -> (tempfile::TempDir, ggpt_core::Scene) {
@@ -32,7 +35,11 @@ fn crc32fast_hash(b: &[u8]) -> u32 {
     for &byte in b {
         crc ^= byte as u32;
         for _ in 0..8 {
-            crc = if crc & 1 != 0 { (crc >> 1) ^ 0xedb8_8320 } else { crc >> 1 };
+            crc = if crc & 1 != 0 {
+                (crc >> 1) ^ 0xedb8_8320
+            } else {
+                crc >> 1
+            };
         }
     }
     !crc
@@ -40,7 +47,11 @@ fn crc32fast_hash(b: &[u8]) -> u32 {
 
 /// Rewrites `scene.safetensors` with tensor `key` replaced by `edit(dtype, shape, bytes)`
 /// (`None` drops it), then fixes the checksums.
-fn edit_tensor(dir: &Path, key: &str, edit: impl Fn(Dtype, &[usize], &[u8]) -> Option<(Dtype, Vec<usize>, Vec<u8>)>) {
+fn edit_tensor(
+    dir: &Path,
+    key: &str,
+    edit: impl Fn(Dtype, &[usize], &[u8]) -> Option<(Dtype, Vec<usize>, Vec<u8>)>,
+) {
     let p = dir.join(TENSORS);
     let f = StFile::open(&p).unwrap();
     let mut w = StWriter::new();
@@ -64,7 +75,10 @@ fn err_of(dir: &Path) -> String {
 
 fn assert_names(e: &str, file: &str, key: &str) {
     assert!(e.contains(file), "error does not name file {file}: {e}");
-    assert!(e.contains(&format!("[{key}]")), "error does not name key {key}: {e}");
+    assert!(
+        e.contains(&format!("[{key}]")),
+        "error does not name key {key}: {e}"
+    );
 }
 
 #[test]
@@ -72,11 +86,17 @@ fn roundtrip_is_lossless() {
     let (dir, scene) = written();
     let back = read_scene(dir.path()).unwrap();
     assert_eq!(back, scene);
-    assert!(dir.path().join("images/000000.png").is_file() && dir.path().join("images/000001.png").is_file());
+    assert!(
+        dir.path().join("images/000000.png").is_file()
+            && dir.path().join("images/000001.png").is_file()
+    );
     assert!(dir.path().join("matches/romav2-base.safetensors").is_file());
     // Bit-exactness including -0.0 / subnormals: compare bit patterns too.
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-    assert_eq!(bits(&back.ff.unwrap().points), bits(&scene.ff.unwrap().points));
+    assert_eq!(
+        bits(&back.ff.unwrap().points),
+        bits(&scene.ff.unwrap().points)
+    );
     // Optional parts absent.
     let mut s2 = full_scene(1, 2, 2);
     s2.gt = None;
@@ -98,7 +118,12 @@ fn writer_rejects_bad_matcher_name_and_invalid_scene() {
     let dir = tempfile::tempdir().unwrap();
     let mut s = full_scene(2, 3, 4);
     s.matches[0].matcher = "../evil".into();
-    assert!(write_scene(dir.path(), &s).unwrap_err().to_string().contains("matcher name"));
+    assert!(
+        write_scene(dir.path(), &s)
+            .unwrap_err()
+            .to_string()
+            .contains("matcher name")
+    );
     let mut s = full_scene(2, 3, 4);
     s.images.pop();
     assert!(write_scene(dir.path(), &s).is_err());
@@ -125,14 +150,20 @@ fn truncated_file() {
     // With a manifest that agrees, the safetensors layer itself must reject it.
     fix_checksums(dir.path());
     let e = err_of(dir.path());
-    assert!(e.contains("synthetic_b.safetensors") && e.contains("truncated or corrupt"), "{e}");
+    assert!(
+        e.contains("synthetic_b.safetensors") && e.contains("truncated or corrupt"),
+        "{e}"
+    );
 }
 
 #[test]
 fn wrong_dtype() {
     let (dir, _) = written();
     edit_tensor(dir.path(), "gt/K", |_, shape, bytes| {
-        let v: Vec<u8> = bytes.chunks_exact(8).flat_map(|c| (f64::from_le_bytes(c.try_into().unwrap()) as f32).to_le_bytes()).collect();
+        let v: Vec<u8> = bytes
+            .chunks_exact(8)
+            .flat_map(|c| (f64::from_le_bytes(c.try_into().unwrap()) as f32).to_le_bytes())
+            .collect();
         Some((Dtype::F32, shape.to_vec(), v))
     });
     let e = err_of(dir.path());
@@ -143,7 +174,9 @@ fn wrong_dtype() {
 #[test]
 fn wrong_shape() {
     let (dir, _) = written();
-    edit_tensor(dir.path(), "ff/conf", |dt, _, bytes| Some((dt, vec![2, 4, 3], bytes.to_vec())));
+    edit_tensor(dir.path(), "ff/conf", |dt, _, bytes| {
+        Some((dt, vec![2, 4, 3], bytes.to_vec()))
+    });
     let e = err_of(dir.path());
     assert_names(&e, TENSORS, "ff/conf");
     assert!(e.contains("shape"), "{e}");
@@ -151,7 +184,12 @@ fn wrong_shape() {
 
 #[test]
 fn nan_and_inf() {
-    for (key, bad) in [("ff/points", f32::NAN), ("ff/conf", f32::INFINITY), ("gt/points", f32::NEG_INFINITY), ("sfm/points", f32::NAN)] {
+    for (key, bad) in [
+        ("ff/points", f32::NAN),
+        ("ff/conf", f32::INFINITY),
+        ("gt/points", f32::NEG_INFINITY),
+        ("sfm/points", f32::NAN),
+    ] {
         let (dir, _) = written();
         edit_tensor(dir.path(), key, |dt, shape, bytes| {
             let mut b = bytes.to_vec();
@@ -218,7 +256,11 @@ fn mismatched_dims_across_files() {
 #[test]
 fn corrupt_manifest() {
     let (dir, _) = written();
-    std::fs::write(dir.path().join(MANIFEST), b"{\"format\": \"ggpt-rs-scene\", ").unwrap();
+    std::fs::write(
+        dir.path().join(MANIFEST),
+        b"{\"format\": \"ggpt-rs-scene\", ",
+    )
+    .unwrap();
     let e = err_of(dir.path());
     assert!(e.contains(MANIFEST) && e.contains("JSON"), "{e}");
     let (dir, _) = written();
@@ -226,6 +268,8 @@ fn corrupt_manifest() {
     m.version = 99;
     std::fs::write(dir.path().join(MANIFEST), serde_json::to_vec(&m).unwrap()).unwrap();
     assert_names(&err_of(dir.path()), MANIFEST, "version");
-    let e = scene_dir::read_scene(&dir.path().join("images")).unwrap_err().to_string();
+    let e = scene_dir::read_scene(&dir.path().join("images"))
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("not a scene directory"), "{e}");
 }

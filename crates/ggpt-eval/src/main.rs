@@ -10,6 +10,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
+use ggpt_cli::{ProgressArgs, SceneKindArg};
 use ggpt_core::io::scene_dir::read_scene;
 
 use ggpt_core::io::atomic::write_json_atomic;
@@ -31,6 +32,8 @@ struct Cli {
     command: Option<Command>,
     #[command(flatten)]
     eval: EvalArgs,
+    #[command(flatten)]
+    progress: ProgressArgs,
 }
 
 #[derive(Debug, Subcommand)]
@@ -95,15 +98,6 @@ impl From<CamerasArg> for CameraSource {
     }
 }
 
-/// Scene family of the demo.
-#[derive(Debug, Clone, Copy, ValueEnum)]
-enum Kind {
-    /// Indoor room.
-    Room,
-    /// Object-centric scene with orbiting cameras.
-    Object,
-}
-
 #[derive(Debug, Args)]
 struct DemoArgs {
     /// Output directory (receives `scene/`, `eval_ff.json`, `eval_gt.json`).
@@ -122,21 +116,16 @@ struct DemoArgs {
     #[arg(long, default_value_t = 392)]
     height: usize,
     /// Scene family.
-    #[arg(long, value_enum, default_value_t = Kind::Room)]
-    kind: Kind,
+    #[arg(long, value_enum, default_value_t)]
+    kind: SceneKindArg,
     /// Also simulate dense matches (slower; lets the SfM stage run on the written scene).
     #[arg(long)]
     with_matches: bool,
 }
 
 fn main() -> Result<()> {
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .init();
     let cli = Cli::parse();
+    ggpt_cli::init_logging(cli.progress.bars());
     match cli.command {
         Some(Command::Demo(a)) => run_demo(a),
         None => run_eval(cli.eval),
@@ -148,11 +137,20 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         bail!("--scene DIR is required (or use `ggpt-eval demo`); see --help");
     };
     let pred = PredSource::parse(&a.pred)?;
-    let mut scene = read_scene(&scene_dir).with_context(|| format!("reading scene {}", scene_dir.display()))?;
+    let mut scene =
+        read_scene(&scene_dir).with_context(|| format!("reading scene {}", scene_dir.display()))?;
     if let Some(p) = &a.sfm {
-        scene.sfm = Some(load_sfm_outputs(p, scene.dims).with_context(|| format!("--sfm {}", p.display()))?);
+        scene.sfm = Some(
+            load_sfm_outputs(p, scene.dims).with_context(|| format!("--sfm {}", p.display()))?,
+        );
     }
-    tracing::info!("scene {} ({} views, {}x{})", scene.name, scene.dims.n, scene.dims.w, scene.dims.h);
+    tracing::info!(
+        "scene {} ({} views, {}x{})",
+        scene.name,
+        scene.dims.n,
+        scene.dims.w,
+        scene.dims.h
+    );
     let report = evaluate_scene(&scene, &pred, a.cameras.into(), a.seed)?;
     if let Some(path) = &a.json {
         write_json_atomic(path, &report)?;
@@ -171,10 +169,7 @@ fn run_demo(a: DemoArgs) -> Result<()> {
         width: a.width,
         height: a.height,
         with_matches: a.with_matches,
-        kind: match a.kind {
-            Kind::Room => ggpt_synth::SceneKind::Room,
-            Kind::Object => ggpt_synth::SceneKind::Object,
-        },
+        kind: ggpt_synth::SceneKind::parse(a.kind.name())?,
     };
     let out = demo::run_demo(&opts)?;
     demo::print_demo(&out, &a.out);

@@ -5,8 +5,10 @@
 //! (`evaluation.json`, the demo table) and `ggpt-train eval` (held-out scenes) both call
 //! [`evaluate_refinement`].
 
-use ggpt_core::metrics::{CameraMetrics, EVAL_ALIGN_MAX_ERROR, PointMetrics, camera_metrics, point_metrics};
 use ggpt_core::metrics::points::PointEvaluation;
+use ggpt_core::metrics::{
+    CameraMetrics, EVAL_ALIGN_MAX_ERROR, PointMetrics, camera_metrics, point_metrics,
+};
 use ggpt_core::{Scene, SfmResult};
 use rand::SeedableRng;
 use rand_pcg::Pcg64;
@@ -49,16 +51,42 @@ pub struct EvaluationDetail {
 
 /// Evaluates the feed-forward, SfM and refined (`[N, h, w, 3]`, SfM frame) points of `scene`
 /// against its GT (metres, GT frame). Errors when the scene has no ground truth.
-pub fn evaluate_refinement(scene: &Scene, sfm: &SfmResult, refined_points: &[f32], seed: u64) -> Result<EvaluationDetail> {
-    let gt = scene.gt.as_ref().ok_or_else(|| EvalError::Invalid(format!("scene {} has no ground truth", scene.name)))?;
-    let ff = scene.ff.as_ref().ok_or_else(|| EvalError::Invalid(format!("scene {} has no feed-forward prediction", scene.name)))?;
+pub fn evaluate_refinement(
+    scene: &Scene,
+    sfm: &SfmResult,
+    refined_points: &[f32],
+    seed: u64,
+) -> Result<EvaluationDetail> {
+    let gt = scene
+        .gt
+        .as_ref()
+        .ok_or_else(|| EvalError::Invalid(format!("scene {} has no ground truth", scene.name)))?;
+    let ff = scene.ff.as_ref().ok_or_else(|| {
+        EvalError::Invalid(format!(
+            "scene {} has no feed-forward prediction",
+            scene.name
+        ))
+    })?;
     let eval = |pred: &[f32], subset: Option<&[bool]>| {
         let mut rng = Pcg64::seed_from_u64(seed);
-        point_metrics(pred, &gt.points, &gt.mask, subset, EVAL_ALIGN_MAX_ERROR, &mut rng)
+        point_metrics(
+            pred,
+            &gt.points,
+            &gt.mask,
+            subset,
+            EVAL_ALIGN_MAX_ERROR,
+            &mut rng,
+        )
     };
     let mut warnings = Vec::new();
-    let ff_ev = eval(&ff.points, None).map_err(|source| EvalError::Metric { what: format!("{}: feed-forward point accuracy", scene.name), source })?;
-    let refined_ev = eval(refined_points, None).map_err(|source| EvalError::Metric { what: format!("{}: refined point accuracy", scene.name), source })?;
+    let ff_ev = eval(&ff.points, None).map_err(|source| EvalError::Metric {
+        what: format!("{}: feed-forward point accuracy", scene.name),
+        source,
+    })?;
+    let refined_ev = eval(refined_points, None).map_err(|source| EvalError::Metric {
+        what: format!("{}: refined point accuracy", scene.name),
+        source,
+    })?;
     let sfm_metrics = match eval(&sfm.points, Some(&sfm.mask)) {
         Ok(e) => Some(e.metrics),
         Err(e) => {
@@ -88,7 +116,11 @@ pub fn evaluate_refinement(scene: &Scene, sfm: &SfmResult, refined_points: &[f32
         cameras_sfm,
         warnings,
     };
-    Ok(EvaluationDetail { summary, ff: ff_ev, refined: refined_ev })
+    Ok(EvaluationDetail {
+        summary,
+        ff: ff_ev,
+        refined: refined_ev,
+    })
 }
 
 /// The before / after table printed by `ggpt-infer demo` and `run`.
@@ -98,7 +130,9 @@ pub fn format_refinement_table(ev: &SceneEvaluation) -> String {
         "points", "pixels", "AUC@1", "AUC@3", "AUC@5", "AUC@10", "median cm", "ratio"
     );
     let row = |name: &str, m: &PointMetrics| {
-        let ratio = m.ratio.map_or("-".to_string(), |r| format!("{:.1}%", 100.0 * r));
+        let ratio = m
+            .ratio
+            .map_or("-".to_string(), |r| format!("{:.1}%", 100.0 * r));
         format!(
             "{:<22} {:>8} {:>7.2} {:>7.2} {:>7.2} {:>7.2} {:>9.3} {:>7}\n",
             name, m.num_points, m.auc_1, m.auc_3, m.auc_5, m.auc_10, m.median_cm, ratio
@@ -109,10 +143,19 @@ pub fn format_refinement_table(ev: &SceneEvaluation) -> String {
         s.push_str(&row("SfM / DLT points", m));
     }
     s.push_str(&row("GGPT refined (after)", &ev.refined));
-    s.push_str(&format!("\n{:<22} {:>8} {:>7} {:>7} {:>7} {:>7}\n", "cameras", "pairs", "AUC@1", "AUC@3", "AUC@5", "AUC@10"));
-    for (name, c) in [("feed-forward", &ev.cameras_ff), ("SfM (refined output)", &ev.cameras_sfm)] {
+    s.push_str(&format!(
+        "\n{:<22} {:>8} {:>7} {:>7} {:>7} {:>7}\n",
+        "cameras", "pairs", "AUC@1", "AUC@3", "AUC@5", "AUC@10"
+    ));
+    for (name, c) in [
+        ("feed-forward", &ev.cameras_ff),
+        ("SfM (refined output)", &ev.cameras_sfm),
+    ] {
         if let Some(c) = c {
-            s.push_str(&format!("{:<22} {:>8} {:>7.2} {:>7.2} {:>7.2} {:>7.2}\n", name, c.num_pairs, c.auc_1, c.auc_3, c.auc_5, c.auc_10));
+            s.push_str(&format!(
+                "{:<22} {:>8} {:>7.2} {:>7.2} {:>7.2} {:>7.2}\n",
+                name, c.num_pairs, c.auc_1, c.auc_3, c.auc_5, c.auc_10
+            ));
         }
     }
     s.push_str("point AUC@τ: % of GT pixels within τ cm after robust Sim(3) alignment to the GT (pipeline.md §10.2);\n");

@@ -6,7 +6,8 @@ use std::path::{Path, PathBuf};
 use ggpt_core::io::npy::read_npy;
 use ggpt_core::io::st::{Dtype, StFile, le_f32, le_f64};
 use ggpt_core::metrics::{
-    CameraMetrics, DepthMetrics, EVAL_ALIGN_MAX_ERROR, PointMetrics, camera_metrics, depth_metrics, point_metrics,
+    CameraMetrics, DepthMetrics, EVAL_ALIGN_MAX_ERROR, PointMetrics, camera_metrics, depth_metrics,
+    point_metrics,
 };
 use ggpt_core::{Cameras, Dims, Scene, SfmResult};
 use rand::SeedableRng;
@@ -114,21 +115,47 @@ pub struct EvalReport {
 pub fn load_prediction(scene: &Scene, source: &PredSource) -> Result<Vec<f32>> {
     let want = 3 * scene.dims.pixels();
     let pts = match source {
-        PredSource::Ff => scene.ff.as_ref().map(|f| f.points.clone()).ok_or_else(|| EvalError::Invalid(format!("scene {} has no feed-forward points", scene.name)))?,
-        PredSource::Sfm => scene.sfm.as_ref().map(|s| s.points.clone()).ok_or_else(|| EvalError::Invalid(format!("scene {} has no SfM result", scene.name)))?,
-        PredSource::Gt => scene.gt.as_ref().map(|g| g.points.clone()).ok_or_else(|| EvalError::Invalid(format!("scene {} has no ground truth", scene.name)))?,
+        PredSource::Ff => scene.ff.as_ref().map(|f| f.points.clone()).ok_or_else(|| {
+            EvalError::Invalid(format!("scene {} has no feed-forward points", scene.name))
+        })?,
+        PredSource::Sfm => scene
+            .sfm
+            .as_ref()
+            .map(|s| s.points.clone())
+            .ok_or_else(|| EvalError::Invalid(format!("scene {} has no SfM result", scene.name)))?,
+        PredSource::Gt => scene.gt.as_ref().map(|g| g.points.clone()).ok_or_else(|| {
+            EvalError::Invalid(format!("scene {} has no ground truth", scene.name))
+        })?,
         PredSource::Npy(path) => {
-            let a = read_npy(path).map_err(|source| EvalError::Input { what: format!("reading prediction {}", path.display()), source })?;
+            let a = read_npy(path).map_err(|source| EvalError::Input {
+                what: format!("reading prediction {}", path.display()),
+                source,
+            })?;
             check_shape(path, "", &a.shape, scene.dims)?;
-            a.to_f32().ok_or_else(|| EvalError::Invalid(format!("{}: dtype {} is not float32/float64", path.display(), a.data.descr())))?
+            a.to_f32().ok_or_else(|| {
+                EvalError::Invalid(format!(
+                    "{}: dtype {} is not float32/float64",
+                    path.display(),
+                    a.data.descr()
+                ))
+            })?
         }
         PredSource::SafeTensors(path, key) => load_safetensors(path, key.as_deref(), scene.dims)?,
     };
     if pts.len() != want {
-        invalid!("prediction {}: {} values, expected {want} ({:?} x 3)", source.label(), pts.len(), scene.dims);
+        invalid!(
+            "prediction {}: {} values, expected {want} ({:?} x 3)",
+            source.label(),
+            pts.len(),
+            scene.dims
+        );
     }
     if let Some(i) = pts.iter().position(|v| !v.is_finite()) {
-        invalid!("prediction {}: non-finite value at flat index {i} (pixel {})", source.label(), i / 3);
+        invalid!(
+            "prediction {}: non-finite value at flat index {i} (pixel {})",
+            source.label(),
+            i / 3
+        );
     }
     Ok(pts)
 }
@@ -139,7 +166,11 @@ fn check_shape(path: &Path, key: &str, shape: &[usize], d: Dims) -> Result<()> {
         invalid!(
             "{}{}: shape {shape:?}, expected [{}, {}, {}, 3] or [{}, 3] for this scene",
             path.display(),
-            if key.is_empty() { String::new() } else { format!(" [{key}]") },
+            if key.is_empty() {
+                String::new()
+            } else {
+                format!(" [{key}]")
+            },
             d.n,
             d.h,
             d.w,
@@ -153,7 +184,10 @@ fn check_shape(path: &Path, key: &str, shape: &[usize], d: Dims) -> Result<()> {
 const DEFAULT_ST_KEYS: [&str; 3] = ["points", "pred_points", "world_points"];
 
 fn load_safetensors(path: &Path, key: Option<&str>, dims: Dims) -> Result<Vec<f32>> {
-    let st = StFile::open(path).map_err(|source| EvalError::Input { what: format!("reading prediction {}", path.display()), source })?;
+    let st = StFile::open(path).map_err(|source| EvalError::Input {
+        what: format!("reading prediction {}", path.display()),
+        source,
+    })?;
     let key = match key {
         Some(k) => k.to_string(),
         None => {
@@ -163,7 +197,10 @@ fn load_safetensors(path: &Path, key: Option<&str>, dims: Dims) -> Result<Vec<f3
             } else if let Some(k) = DEFAULT_ST_KEYS.iter().find(|k| st.has(k)) {
                 (*k).to_string()
             } else {
-                invalid!("{}: several tensors {keys:?}; name one with FILE.safetensors:KEY", path.display());
+                invalid!(
+                    "{}: several tensors {keys:?}; name one with FILE.safetensors:KEY",
+                    path.display()
+                );
             }
         }
     };
@@ -200,18 +237,45 @@ pub fn resolve_cameras(pred: &PredSource, cams: CameraSource, scene: &Scene) -> 
 
 /// Evaluates `pred` (and the cameras `cams`) of `scene` against its ground truth with the
 /// RANSAC generator seeded by `seed`.
-pub fn evaluate_scene(scene: &Scene, pred: &PredSource, cams: CameraSource, seed: u64) -> Result<EvalReport> {
-    let gt = scene.gt.as_ref().ok_or_else(|| EvalError::Invalid(format!("scene {} has no ground truth to evaluate against", scene.name)))?;
+pub fn evaluate_scene(
+    scene: &Scene,
+    pred: &PredSource,
+    cams: CameraSource,
+    seed: u64,
+) -> Result<EvalReport> {
+    let gt = scene.gt.as_ref().ok_or_else(|| {
+        EvalError::Invalid(format!(
+            "scene {} has no ground truth to evaluate against",
+            scene.name
+        ))
+    })?;
     let points = load_prediction(scene, pred)?;
     let subset = match pred {
         PredSource::Sfm => scene.sfm.as_ref().map(|s| s.mask.as_slice()),
         _ => None,
     };
     let mut rng = Pcg64::seed_from_u64(seed);
-    let ev = point_metrics(&points, &gt.points, &gt.mask, subset, EVAL_ALIGN_MAX_ERROR, &mut rng)
-        .map_err(|source| EvalError::Metric { what: format!("point accuracy of {}", pred.label()), source })?;
+    let ev = point_metrics(
+        &points,
+        &gt.points,
+        &gt.mask,
+        subset,
+        EVAL_ALIGN_MAX_ERROR,
+        &mut rng,
+    )
+    .map_err(|source| EvalError::Metric {
+        what: format!("point accuracy of {}", pred.label()),
+        source,
+    })?;
     let mut warnings = Vec::new();
-    let depth = match depth_metrics(&points, &ev.sim3, &gt.cameras, &gt.points, gt.depth.as_deref(), &ev.mask) {
+    let depth = match depth_metrics(
+        &points,
+        &ev.sim3,
+        &gt.cameras,
+        &gt.points,
+        gt.depth.as_deref(),
+        &ev.mask,
+    ) {
         Ok(d) => Some(d),
         Err(e) => {
             warnings.push(format!("depth metrics skipped: {e}"));
@@ -224,7 +288,9 @@ pub fn evaluate_scene(scene: &Scene, pred: &PredSource, cams: CameraSource, seed
     } else {
         match cameras_of(scene, cam_source) {
             None => {
-                warnings.push(format!("camera evaluation skipped: scene has no {cam_source:?} cameras"));
+                warnings.push(format!(
+                    "camera evaluation skipped: scene has no {cam_source:?} cameras"
+                ));
                 (None, None)
             }
             Some((name, c)) => match camera_metrics(c, &gt.cameras) {
@@ -271,35 +337,79 @@ pub fn load_sfm_outputs(path: &Path, dims: Dims) -> Result<SfmResult> {
         } else if bin.is_file() {
             bin
         } else {
-            invalid!("{}: directory holds neither {SFM_OUTPUT_FILE} nor sfm_dlt_outputs.bin", path.display());
+            invalid!(
+                "{}: directory holds neither {SFM_OUTPUT_FILE} nor sfm_dlt_outputs.bin",
+                path.display()
+            );
         }
     } else {
         path.to_path_buf()
     };
     let (n, h, w) = (dims.n, dims.h, dims.w);
     let res = if file.extension().is_some_and(|e| e == "bin") {
-        let b = ggpt_core::io::official::read_sfm_dlt_outputs_bin(&file).map_err(|source| EvalError::Input { what: format!("reading SfM outputs {}", file.display()), source })?;
+        let b = ggpt_core::io::official::read_sfm_dlt_outputs_bin(&file).map_err(|source| {
+            EvalError::Input {
+                what: format!("reading SfM outputs {}", file.display()),
+                source,
+            }
+        })?;
         if b.dims != dims {
-            invalid!("{}: SfM outputs are {:?}, the scene is {dims:?}", file.display(), b.dims);
+            invalid!(
+                "{}: SfM outputs are {:?}, the scene is {dims:?}",
+                file.display(),
+                b.dims
+            );
         }
         b.to_sfm_result()
     } else {
-        let st = StFile::open(&file).map_err(|source| EvalError::Input { what: format!("reading SfM outputs {}", file.display()), source })?;
+        let st = StFile::open(&file).map_err(|source| EvalError::Input {
+            what: format!("reading SfM outputs {}", file.display()),
+            source,
+        })?;
         let points = st.f32_finite("points", &[n, h, w, 3])?;
         let mask = st.bool("point_masks", &[n, h, w])?;
         let rows = match st.shape("extrinsics")? {
             [m, r, 4] if *m == n && (*r == 3 || *r == 4) => *r,
-            s => invalid!("{} [extrinsics]: shape {s:?}, expected [{n}, 3, 4] or [{n}, 4, 4]", file.display()),
+            s => invalid!(
+                "{} [extrinsics]: shape {s:?}, expected [{n}, 3, 4] or [{n}, 4, 4]",
+                file.display()
+            ),
         };
         let ext = camera_floats(&st, "extrinsics", &[n, rows, 4])?;
         let k = camera_floats(&st, "intrinsics", &[n, 3, 3])?;
-        let cam_from_world = ext.chunks_exact(rows * 4).map(|m| nalgebra::Matrix3x4::from_row_iterator(m.iter().take(12).copied())).collect();
-        let intrinsics = k.chunks_exact(9).map(|m| nalgebra::Matrix3::from_row_iterator(m.iter().copied())).collect();
-        let flag = |key: &str, default: bool| -> Result<bool> { if st.has(key) { Ok(st.scalar_bool(key)?) } else { Ok(default) } };
+        let cam_from_world = ext
+            .chunks_exact(rows * 4)
+            .map(|m| nalgebra::Matrix3x4::from_row_iterator(m.iter().take(12).copied()))
+            .collect();
+        let intrinsics = k
+            .chunks_exact(9)
+            .map(|m| nalgebra::Matrix3::from_row_iterator(m.iter().copied()))
+            .collect();
+        let flag = |key: &str, default: bool| -> Result<bool> {
+            if st.has(key) {
+                Ok(st.scalar_bool(key)?)
+            } else {
+                Ok(default)
+            }
+        };
         let points_success = flag("points_success", mask.iter().any(|&b| b))?;
-        SfmResult { points, mask, cameras: Cameras { cam_from_world, intrinsics }, camera_success: flag("camera_success", true)?, points_success }
+        SfmResult {
+            points,
+            mask,
+            cameras: Cameras {
+                cam_from_world,
+                intrinsics,
+            },
+            camera_success: flag("camera_success", true)?,
+            points_success,
+        }
     };
-    tracing::info!("SfM outputs read from {} (camera_success {}, {} pixels with a point)", file.display(), res.camera_success, res.mask.iter().filter(|&&b| b).count());
+    tracing::info!(
+        "SfM outputs read from {} (camera_success {}, {} pixels with a point)",
+        file.display(),
+        res.camera_success,
+        res.mask.iter().filter(|&&b| b).count()
+    );
     Ok(res)
 }
 
@@ -310,7 +420,10 @@ fn camera_floats(st: &StFile, key: &str, shape: &[usize]) -> Result<Vec<f64>> {
         _ => st.f32(key, shape)?.into_iter().map(f64::from).collect(),
     };
     if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-        invalid!("{} [{key}]: non-finite value at flat index {i}", st.path().display());
+        invalid!(
+            "{} [{key}]: non-finite value at flat index {i}",
+            st.path().display()
+        );
     }
     Ok(v)
 }
@@ -342,7 +455,9 @@ pub fn format_table(reports: &[EvalReport]) -> String {
     ));
     for r in reports {
         let p = &r.points;
-        let ratio = p.ratio.map_or("-".to_string(), |v| format!("{:.1}%", 100.0 * v));
+        let ratio = p
+            .ratio
+            .map_or("-".to_string(), |v| format!("{:.1}%", 100.0 * v));
         let cams = match &r.cameras {
             Some(c) => format!(
                 "{:>4} {:>6.1} {:>6.1} {:>6.1} {:>6.1} {:>6.2}",
@@ -353,14 +468,28 @@ pub fn format_table(reports: &[EvalReport]) -> String {
                 c.auc_10,
                 c.fov_error_deg
             ),
-            None => format!("{:>4} {:>6} {:>6} {:>6} {:>6} {:>6}", "-", "-", "-", "-", "-", "-"),
+            None => format!(
+                "{:>4} {:>6} {:>6} {:>6} {:>6} {:>6}",
+                "-", "-", "-", "-", "-", "-"
+            ),
         };
         let depth = match &r.depth {
-            Some(d) => format!("{:>7.4} {:>7.1} {:>7.1} {:>7.1}", d.abs_rel, d.delta_1_01, d.delta_1_03, d.delta_1_25),
+            Some(d) => format!(
+                "{:>7.4} {:>7.1} {:>7.1} {:>7.1}",
+                d.abs_rel, d.delta_1_01, d.delta_1_03, d.delta_1_25
+            ),
             None => format!("{:>7} {:>7} {:>7} {:>7}", "-", "-", "-", "-"),
         };
         let label = if r.prediction.chars().count() > 14 {
-            let tail: String = r.prediction.chars().rev().take(13).collect::<Vec<_>>().into_iter().rev().collect();
+            let tail: String = r
+                .prediction
+                .chars()
+                .rev()
+                .take(13)
+                .collect::<Vec<_>>()
+                .into_iter()
+                .rev()
+                .collect();
             format!("…{tail}")
         } else {
             r.prediction.clone()
@@ -384,8 +513,14 @@ mod tests {
         assert_eq!(PredSource::parse("ff").unwrap(), PredSource::Ff);
         assert_eq!(PredSource::parse("sfm").unwrap(), PredSource::Sfm);
         assert_eq!(PredSource::parse("gt").unwrap(), PredSource::Gt);
-        assert_eq!(PredSource::parse("a/b.npy").unwrap(), PredSource::Npy("a/b.npy".into()));
-        assert_eq!(PredSource::parse("x.safetensors").unwrap(), PredSource::SafeTensors("x.safetensors".into(), None));
+        assert_eq!(
+            PredSource::parse("a/b.npy").unwrap(),
+            PredSource::Npy("a/b.npy".into())
+        );
+        assert_eq!(
+            PredSource::parse("x.safetensors").unwrap(),
+            PredSource::SafeTensors("x.safetensors".into(), None)
+        );
         assert_eq!(
             PredSource::parse("out/x.safetensors:pts").unwrap(),
             PredSource::SafeTensors("out/x.safetensors".into(), Some("pts".into()))

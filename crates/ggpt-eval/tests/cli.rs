@@ -1,4 +1,5 @@
 //! End-to-end tests of the `ggpt-eval` binary on a small synthetic scene.
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 use std::path::Path;
 use std::process::Command;
@@ -32,7 +33,8 @@ fn f(v: &serde_json::Value, path: &[&str]) -> f64 {
     for k in path {
         x = &x[*k];
     }
-    x.as_f64().unwrap_or_else(|| panic!("{path:?} missing in {v}"))
+    x.as_f64()
+        .unwrap_or_else(|| panic!("{path:?} missing in {v}"))
 }
 
 /// The depth columns of the table row of `label`: `(header, row)` cells of the last four
@@ -42,8 +44,14 @@ fn depth_cells(stdout: &str, label: &str) -> (Vec<String>, Vec<String>) {
         let t: Vec<String> = line.split_whitespace().map(str::to_string).collect();
         t[t.len().saturating_sub(4)..].to_vec()
     };
-    let header = stdout.lines().find(|l| l.starts_with("prediction")).unwrap_or_else(|| panic!("no table header:\n{stdout}"));
-    let row = stdout.lines().find(|l| l.split_whitespace().next() == Some(label)).unwrap_or_else(|| panic!("no row {label}:\n{stdout}"));
+    let header = stdout
+        .lines()
+        .find(|l| l.starts_with("prediction"))
+        .unwrap_or_else(|| panic!("no table header:\n{stdout}"));
+    let row = stdout
+        .lines()
+        .find(|l| l.split_whitespace().next() == Some(label))
+        .unwrap_or_else(|| panic!("no row {label}:\n{stdout}"));
     (last4(header), last4(row))
 }
 
@@ -52,7 +60,12 @@ fn assert_depth_columns(stdout: &str, label: &str, report: &serde_json::Value) {
     let (header, row) = depth_cells(stdout, label);
     assert_eq!(header, ["AbsRel", "δ<1.01", "δ<1.03", "δ<1.25"], "{stdout}");
     let d = |k: &str| f(report, &["depth", k]);
-    let want = [format!("{:.4}", d("abs_rel")), format!("{:.1}", d("delta_1_01")), format!("{:.1}", d("delta_1_03")), format!("{:.1}", d("delta_1_25"))];
+    let want = [
+        format!("{:.4}", d("abs_rel")),
+        format!("{:.1}", d("delta_1_01")),
+        format!("{:.1}", d("delta_1_03")),
+        format!("{:.1}", d("delta_1_25")),
+    ];
     assert_eq!(row, want, "{stdout}");
 }
 
@@ -60,8 +73,17 @@ fn assert_depth_columns(stdout: &str, label: &str, report: &serde_json::Value) {
 fn demo_and_scene_evaluation() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("demo");
-    let stdout = run_ok(bin().args(["demo", "--views", "3", "--width", "112", "--height", "84", "--seed", "7", "--out"]).arg(&out));
-    assert!(stdout.contains("AUC@5") && stdout.contains("eval_ff.json"), "{stdout}");
+    let stdout = run_ok(
+        bin()
+            .args([
+                "demo", "--views", "3", "--width", "112", "--height", "84", "--seed", "7", "--out",
+            ])
+            .arg(&out),
+    );
+    assert!(
+        stdout.contains("AUC@5") && stdout.contains("eval_ff.json"),
+        "{stdout}"
+    );
     let scene_dir = out.join("scene");
 
     // Demo reports: ff clearly imperfect, GT perfect.
@@ -71,7 +93,10 @@ fn demo_and_scene_evaluation() {
         assert_eq!(f(&gt, &["points", key]), 100.0, "gt {key}");
         assert_eq!(f(&gt, &["cameras", key]), 100.0, "gt cameras {key}");
     }
-    assert!(f(&ff, &["points", "auc_5"]) < 90.0 && f(&ff, &["points", "auc_10"]) < 95.0, "{ff}");
+    assert!(
+        f(&ff, &["points", "auc_5"]) < 90.0 && f(&ff, &["points", "auc_10"]) < 95.0,
+        "{ff}"
+    );
     assert!(f(&ff, &["points", "auc_5"]) > 0.0);
     assert_eq!(f(&gt, &["depth", "delta_1_01"]), 100.0);
     // The demo's table has one row per report, with the same depth columns.
@@ -80,19 +105,34 @@ fn demo_and_scene_evaluation() {
 
     // Evaluate the written scene through the CLI.
     let json = tmp.path().join("ff.json");
-    let stdout = run_ok(bin().arg("--scene").arg(&scene_dir).args(["--seed", "7", "--pred", "ff", "--json"]).arg(&json));
+    let stdout = run_ok(
+        bin()
+            .arg("--scene")
+            .arg(&scene_dir)
+            .args(["--seed", "7", "--pred", "ff", "--json"])
+            .arg(&json),
+    );
     assert!(stdout.contains("AUC@10"), "{stdout}");
     let r = read_json(&json);
     assert_depth_columns(&stdout, "ff", &r);
     // The ff prediction is imperfect: δ<1.01 is strictly below δ<1.03 (so the columns differ).
-    assert!(f(&r, &["depth", "delta_1_01"]) < f(&r, &["depth", "delta_1_03"]), "{r}");
+    assert!(
+        f(&r, &["depth", "delta_1_01"]) < f(&r, &["depth", "delta_1_03"]),
+        "{r}"
+    );
     assert_eq!(r["prediction"], "ff");
     assert_eq!(r["camera_source"], "ff");
     // Same seed, same scene: identical to the demo's report.
     assert_eq!(r["points"], ff["points"]);
 
     let json_gt = tmp.path().join("gt.json");
-    let stdout = run_ok(bin().arg("--scene").arg(&scene_dir).args(["--pred", "gt", "--cameras", "gt", "--json"]).arg(&json_gt));
+    let stdout = run_ok(
+        bin()
+            .arg("--scene")
+            .arg(&scene_dir)
+            .args(["--pred", "gt", "--cameras", "gt", "--json"])
+            .arg(&json_gt),
+    );
     let r = read_json(&json_gt);
     assert_depth_columns(&stdout, "gt", &r);
     assert_eq!(depth_cells(&stdout, "gt").1[1], "100.0");
@@ -105,18 +145,42 @@ fn demo_and_scene_evaluation() {
     let d = scene.dims;
     let pred: Vec<f32> = gt_pts.iter().map(|v| 2.0 * v + 1.0).collect();
     let npy = tmp.path().join("pred.npy");
-    write_npy(&npy, &NpyArray::new(vec![d.n, d.h, d.w, 3], NpyData::F32(pred)).unwrap()).unwrap();
+    write_npy(
+        &npy,
+        &NpyArray::new(vec![d.n, d.h, d.w, 3], NpyData::F32(pred)).unwrap(),
+    )
+    .unwrap();
     let json_npy = tmp.path().join("npy.json");
-    run_ok(bin().arg("--scene").arg(&scene_dir).arg("--pred").arg(&npy).args(["--cameras", "none", "--json"]).arg(&json_npy));
+    run_ok(
+        bin()
+            .arg("--scene")
+            .arg(&scene_dir)
+            .arg("--pred")
+            .arg(&npy)
+            .args(["--cameras", "none", "--json"])
+            .arg(&json_npy),
+    );
     let r = read_json(&json_npy);
     assert!(f(&r, &["points", "auc_1"]) > 99.9, "{r}");
     assert!(r["cameras"].is_null());
 
     // Wrong shape: clear error, non-zero exit, no report.
     let bad = tmp.path().join("bad.npy");
-    write_npy(&bad, &NpyArray::new(vec![2, 3], NpyData::F32(vec![0.0; 6])).unwrap()).unwrap();
+    write_npy(
+        &bad,
+        &NpyArray::new(vec![2, 3], NpyData::F32(vec![0.0; 6])).unwrap(),
+    )
+    .unwrap();
     let json_bad = tmp.path().join("bad.json");
-    let o = bin().arg("--scene").arg(&scene_dir).arg("--pred").arg(&bad).arg("--json").arg(&json_bad).output().unwrap();
+    let o = bin()
+        .arg("--scene")
+        .arg(&scene_dir)
+        .arg("--pred")
+        .arg(&bad)
+        .arg("--json")
+        .arg(&json_bad)
+        .output()
+        .unwrap();
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("bad.npy") && err.contains("shape"), "{err}");
@@ -128,7 +192,10 @@ fn missing_scene_is_an_error() {
     let o = bin().output().unwrap();
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--scene"));
-    let o = bin().args(["--scene", "/nonexistent/dir"]).output().unwrap();
+    let o = bin()
+        .args(["--scene", "/nonexistent/dir"])
+        .output()
+        .unwrap();
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("/nonexistent/dir"));
 }
@@ -149,16 +216,36 @@ fn sfm_outputs_file_is_evaluated() {
     use ggpt_core::io::st::StWriter;
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("demo");
-    run_ok(bin().args(["demo", "--views", "3", "--width", "56", "--height", "42", "--seed", "3", "--out"]).arg(&out));
+    run_ok(
+        bin()
+            .args([
+                "demo", "--views", "3", "--width", "56", "--height", "42", "--seed", "3", "--out",
+            ])
+            .arg(&out),
+    );
     let scene_dir = out.join("scene");
     let scene = read_scene(&scene_dir).unwrap();
     let d = scene.dims;
     let gt = scene.gt.as_ref().unwrap();
     let pts: Vec<f32> = gt.points.iter().map(|v| 0.5 * v - 2.0).collect();
     let mask: Vec<bool> = (0..d.pixels()).map(|p| p % 2 == 0).collect();
-    let masked: Vec<f32> = pts.iter().enumerate().map(|(i, &v)| if mask[i / 3] { v } else { 0.0 }).collect();
-    let ext: Vec<f32> = gt.cameras.cam_from_world.iter().flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>()).collect();
-    let k: Vec<f32> = gt.cameras.intrinsics.iter().flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>()).collect();
+    let masked: Vec<f32> = pts
+        .iter()
+        .enumerate()
+        .map(|(i, &v)| if mask[i / 3] { v } else { 0.0 })
+        .collect();
+    let ext: Vec<f32> = gt
+        .cameras
+        .cam_from_world
+        .iter()
+        .flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>())
+        .collect();
+    let k: Vec<f32> = gt
+        .cameras
+        .intrinsics
+        .iter()
+        .flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>())
+        .collect();
     let mut w = StWriter::new();
     w.f32("points", &[d.n, d.h, d.w, 3], &masked);
     w.bool("point_masks", &[d.n, d.h, d.w], &mask);
@@ -172,7 +259,15 @@ fn sfm_outputs_file_is_evaluated() {
     std::fs::write(&file, w.finish(&file, None).unwrap()).unwrap();
     for arg in [file.clone(), sfm_dir.clone()] {
         let json = tmp.path().join("sfm.json");
-        run_ok(bin().arg("--scene").arg(&scene_dir).arg("--sfm").arg(&arg).args(["--pred", "sfm", "--json"]).arg(&json));
+        run_ok(
+            bin()
+                .arg("--scene")
+                .arg(&scene_dir)
+                .arg("--sfm")
+                .arg(&arg)
+                .args(["--pred", "sfm", "--json"])
+                .arg(&json),
+        );
         let r = read_json(&json);
         assert_eq!(r["camera_source"], "sfm");
         assert!(f(&r, &["points", "auc_1"]) > 99.9, "{r}");
@@ -185,8 +280,18 @@ fn sfm_outputs_file_is_evaluated() {
     w.f32("points", &[1, 2, 2, 3], &[0.0; 12]);
     let bad = tmp.path().join("bad.safetensors");
     std::fs::write(&bad, w.finish(&bad, None).unwrap()).unwrap();
-    let o = bin().arg("--scene").arg(&scene_dir).arg("--sfm").arg(&bad).args(["--pred", "sfm"]).output().unwrap();
+    let o = bin()
+        .arg("--scene")
+        .arg(&scene_dir)
+        .arg("--sfm")
+        .arg(&bad)
+        .args(["--pred", "sfm"])
+        .output()
+        .unwrap();
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("bad.safetensors") && err.contains("points"), "{err}");
+    assert!(
+        err.contains("bad.safetensors") && err.contains("points"),
+        "{err}"
+    );
 }

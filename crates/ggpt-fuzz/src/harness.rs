@@ -33,12 +33,20 @@ pub struct SeedFile {
 impl SeedFile {
     /// A file that cases mutate.
     pub fn new(path: impl Into<PathBuf>, bytes: Vec<u8>) -> Self {
-        Self { path: path.into(), bytes, mutate: true }
+        Self {
+            path: path.into(),
+            bytes,
+            mutate: true,
+        }
     }
 
     /// A file that is written but never mutated.
     pub fn fixed(path: impl Into<PathBuf>, bytes: Vec<u8>) -> Self {
-        Self { path: path.into(), bytes, mutate: false }
+        Self {
+            path: path.into(),
+            bytes,
+            mutate: false,
+        }
     }
 }
 
@@ -137,11 +145,21 @@ fn case_rng(seed: u64, target: &str, case: u64) -> rand_pcg::Pcg64 {
 /// Panic messages of the cases (the panic hook stores them here instead of printing them).
 type PanicSlot = Arc<Mutex<Option<String>>>;
 
-fn install_quiet_hook(slot: PanicSlot) -> Box<dyn Fn(&std::panic::PanicHookInfo<'_>) + Sync + Send + 'static> {
+fn install_quiet_hook(
+    slot: PanicSlot,
+) -> Box<dyn Fn(&std::panic::PanicHookInfo<'_>) + Sync + Send + 'static> {
     let previous = std::panic::take_hook();
     std::panic::set_hook(Box::new(move |info| {
-        let msg = info.payload().downcast_ref::<&str>().map(|s| s.to_string()).or_else(|| info.payload().downcast_ref::<String>().cloned()).unwrap_or_default();
-        let at = info.location().map(|l| format!(" at {}:{}", l.file(), l.line())).unwrap_or_default();
+        let msg = info
+            .payload()
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| info.payload().downcast_ref::<String>().cloned())
+            .unwrap_or_default();
+        let at = info
+            .location()
+            .map(|l| format!(" at {}:{}", l.file(), l.line()))
+            .unwrap_or_default();
         if let Ok(mut s) = slot.lock() {
             *s = Some(format!("panic: {msg}{at}"));
         }
@@ -151,9 +169,15 @@ fn install_quiet_hook(slot: PanicSlot) -> Box<dyn Fn(&std::panic::PanicHookInfo<
 
 fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
     if let Some(parent) = path.parent() {
-        std::fs::create_dir_all(parent).map_err(|e| FuzzError::Io { path: parent.to_path_buf(), source: e })?;
+        std::fs::create_dir_all(parent).map_err(|e| FuzzError::Io {
+            path: parent.to_path_buf(),
+            source: e,
+        })?;
     }
-    std::fs::write(path, bytes).map_err(|e| FuzzError::Io { path: path.to_path_buf(), source: e })
+    std::fs::write(path, bytes).map_err(|e| FuzzError::Io {
+        path: path.to_path_buf(),
+        source: e,
+    })
 }
 
 /// Classifies a reader result for a case that mutated `file`.
@@ -162,7 +186,10 @@ fn classify(result: std::result::Result<u64, String>, original: u64, file: &Path
         Ok(f) if f == original => Outcome::Same,
         Ok(_) => Outcome::Different,
         Err(message) => {
-            let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            let name = file
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
             if !name.is_empty() && message.contains(&name) {
                 Outcome::Rejected
             } else {
@@ -174,22 +201,39 @@ fn classify(result: std::result::Result<u64, String>, original: u64, file: &Path
 
 /// Runs `cases` mutations of `target` (index `index` in the registry, for the abort message).
 /// `progress(done)` is called after every case.
-pub fn run_target(target: &dyn Target, index: usize, o: &RunOptions, progress: &mut dyn FnMut(u64)) -> Result<TargetReport> {
+pub fn run_target(
+    target: &dyn Target,
+    index: usize,
+    o: &RunOptions,
+    progress: &mut dyn FnMut(u64),
+) -> Result<TargetReport> {
     let started = Instant::now();
     let seeds = target.seed()?;
     let dir = o.work_dir.join(target.name());
     if dir.exists() {
-        std::fs::remove_dir_all(&dir).map_err(|e| FuzzError::Io { path: dir.clone(), source: e })?;
+        std::fs::remove_dir_all(&dir).map_err(|e| FuzzError::Io {
+            path: dir.clone(),
+            source: e,
+        })?;
     }
     for s in &seeds {
         write_file(&dir.join(&s.path), &s.bytes)?;
     }
-    let original = target.read(&dir).map_err(|message| FuzzError::Seed { target: target.name().to_string(), message })?;
+    let original = target.read(&dir).map_err(|message| FuzzError::Seed {
+        target: target.name().to_string(),
+        message,
+    })?;
     let mutable: Vec<&SeedFile> = seeds.iter().filter(|s| s.mutate).collect();
     if mutable.is_empty() {
-        return Err(FuzzError::Seed { target: target.name().to_string(), message: "no mutable seed file".into() });
+        return Err(FuzzError::Seed {
+            target: target.name().to_string(),
+            message: "no mutable seed file".into(),
+        });
     }
-    let runs: BTreeMap<&Path, Vec<(usize, usize)>> = mutable.iter().map(|s| (s.path.as_path(), digit_runs(&s.bytes))).collect();
+    let runs: BTreeMap<&Path, Vec<(usize, usize)>> = mutable
+        .iter()
+        .map(|s| (s.path.as_path(), digit_runs(&s.bytes)))
+        .collect();
     let mut report = TargetReport {
         target: target.name().to_string(),
         describe: target.describe().to_string(),
@@ -222,10 +266,17 @@ pub fn run_target(target: &dyn Target, index: usize, o: &RunOptions, progress: &
         crate::alloc::set_case(index, case, o.seed);
         let base = crate::alloc::reset_peak();
         let read = catch_unwind(AssertUnwindSafe(|| target.read(&dir)));
-        report.max_case_heap_bytes = report.max_case_heap_bytes.max(crate::alloc::peak_bytes().saturating_sub(base) as u64);
+        report.max_case_heap_bytes = report
+            .max_case_heap_bytes
+            .max(crate::alloc::peak_bytes().saturating_sub(base) as u64);
         let outcome = match read {
             Ok(r) => classify(r, original, &path),
-            Err(_) => Outcome::Failure(slot.lock().ok().and_then(|mut s| s.take()).unwrap_or_else(|| "panic".into())),
+            Err(_) => Outcome::Failure(
+                slot.lock()
+                    .ok()
+                    .and_then(|mut s| s.take())
+                    .unwrap_or_else(|| "panic".into()),
+            ),
         };
         report.cases += 1;
         match outcome {
@@ -254,7 +305,9 @@ pub fn run_target(target: &dyn Target, index: usize, o: &RunOptions, progress: &
 
 /// The report as a Markdown table (one row per target) followed by the failing cases.
 pub fn markdown(reports: &[TargetReport], seed: u64) -> String {
-    let mut s = String::from("| target | reads | seed bytes | cases | same | other data | rejected | failures | max heap / case | time |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    let mut s = String::from(
+        "| target | reads | seed bytes | cases | same | other data | rejected | failures | max heap / case | time |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+    );
     for r in reports {
         s.push_str(&format!(
             "| `{}` | {} | {} | {} | {} | {} | {} | {} | {:.1} MiB | {:.1} s |\n",

@@ -21,13 +21,20 @@ pub enum FuzzError {
     /// I/O on the scratch folder.
     #[error("{path}: {source}")]
     Io {
+        /// The file or folder.
         path: PathBuf,
+        /// What the operating system said.
         #[source]
         source: std::io::Error,
     },
     /// A target's seed could not be built or does not read back.
     #[error("target {target}: seed: {message}")]
-    Seed { target: String, message: String },
+    Seed {
+        /// The target's name.
+        target: String,
+        /// The problem.
+        message: String,
+    },
     /// Unknown target name.
     #[error("unknown target {0:?} (known: {known})", known = targets::NAMES.join(", "))]
     UnknownTarget(String),
@@ -41,7 +48,11 @@ static RUN_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 /// Runs the targets named in `only` (all when empty) with `options`; `progress(target, done)`
 /// is called after every case.
-pub fn run(only: &[String], options: &harness::RunOptions, progress: &mut dyn FnMut(&str, u64)) -> Result<Vec<harness::TargetReport>> {
+pub fn run(
+    only: &[String],
+    options: &harness::RunOptions,
+    progress: &mut dyn FnMut(&str, u64),
+) -> Result<Vec<harness::TargetReport>> {
     for name in only {
         if !targets::NAMES.contains(&name.as_str()) {
             return Err(FuzzError::UnknownTarget(name.clone()));
@@ -55,13 +66,21 @@ pub fn run(only: &[String], options: &harness::RunOptions, progress: &mut dyn Fn
             continue;
         }
         let name = target.name();
-        reports.push(harness::run_target(target.as_ref(), index, options, &mut |done| progress(name, done))?);
+        reports.push(harness::run_target(
+            target.as_ref(),
+            index,
+            options,
+            &mut |done| progress(name, done),
+        )?);
     }
     Ok(reports)
 }
 
 /// Runs one custom target (tests of the harness itself).
-pub fn run_custom(target: &dyn harness::Target, options: &harness::RunOptions) -> Result<harness::TargetReport> {
+pub fn run_custom(
+    target: &dyn harness::Target,
+    options: &harness::RunOptions,
+) -> Result<harness::TargetReport> {
     let _guard = RUN_LOCK.lock().unwrap_or_else(|p| p.into_inner());
     harness::run_target(target, usize::MAX, options, &mut |_| {})
 }

@@ -6,8 +6,8 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Parser;
+use ggpt_cli::{Bar, ProgressArgs};
 use ggpt_fuzz::harness::RunOptions;
-use indicatif::{ProgressBar, ProgressStyle};
 
 #[global_allocator]
 static ALLOCATOR: ggpt_fuzz::alloc::BoundedAllocator = ggpt_fuzz::alloc::BoundedAllocator;
@@ -40,6 +40,8 @@ struct Args {
     /// List the targets and exit.
     #[arg(long)]
     list: bool,
+    #[command(flatten)]
+    progress: ProgressArgs,
 }
 
 fn main() -> Result<()> {
@@ -51,22 +53,35 @@ fn main() -> Result<()> {
         // SAFETY: first statement of `main`, before any other thread exists.
         unsafe { std::env::set_var("BURN_DEVICE", name) };
     }
-    tracing_subscriber::fmt().with_writer(std::io::stderr).with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into())).init();
     let a = Args::parse();
+    ggpt_cli::init_logging(a.progress.bars());
     if a.list {
         for t in ggpt_fuzz::targets::all() {
             println!("{:22} {}", t.name(), t.describe());
         }
         return Ok(());
     }
-    ggpt_fuzz::alloc::set_limit(usize::try_from(a.max_alloc_mib.saturating_mul(1 << 20)).unwrap_or(usize::MAX));
+    ggpt_fuzz::alloc::set_limit(
+        usize::try_from(a.max_alloc_mib.saturating_mul(1 << 20)).unwrap_or(usize::MAX),
+    );
     let tmp = tempfile::tempdir().context("creating a scratch folder")?;
-    let work_dir = a.work_dir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
-    let options = RunOptions { cases: a.cases, seed: a.seed, only_case: a.case, work_dir };
+    let work_dir = a
+        .work_dir
+        .clone()
+        .unwrap_or_else(|| tmp.path().to_path_buf());
+    let options = RunOptions {
+        cases: a.cases,
+        seed: a.seed,
+        only_case: a.case,
+        work_dir,
+    };
     let per_target = if a.case.is_some() { 1 } else { a.cases };
-    let count = if a.targets.is_empty() { ggpt_fuzz::targets::NAMES.len() } else { a.targets.len() } as u64;
-    let bar = ProgressBar::new(per_target * count);
-    bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} cases {msg} [{elapsed_precise}, eta {eta}]").unwrap_or_else(|_| ProgressStyle::default_bar()));
+    let count = if a.targets.is_empty() {
+        ggpt_fuzz::targets::NAMES.len()
+    } else {
+        a.targets.len()
+    } as u64;
+    let bar = Bar::new("cases", per_target * count);
     let mut last = String::new();
     let mut done_before = 0;
     let mut current = 0;
@@ -74,16 +89,17 @@ fn main() -> Result<()> {
         if name != last {
             done_before += current;
             last = name.to_string();
-            bar.set_message(name.to_string());
+            bar.set_message(name);
         }
         current = done;
         bar.set_position(done_before + done);
     })?;
-    bar.finish_and_clear();
+    bar.finish();
     print!("{}", ggpt_fuzz::harness::markdown(&reports, a.seed));
     if let Some(path) = &a.report {
         let text = serde_json::to_string_pretty(&reports).context("serialising the report")?;
-        ggpt_core::io::atomic::write_bytes_atomic(path, text.as_bytes()).with_context(|| format!("writing {}", path.display()))?;
+        ggpt_core::io::atomic::write_bytes_atomic(path, text.as_bytes())
+            .with_context(|| format!("writing {}", path.display()))?;
     }
     let failures: usize = reports.iter().map(|r| r.failures.len()).sum();
     if failures > 0 {

@@ -32,21 +32,61 @@ const NUMBER_REPLACEMENTS: &[&str] = &[
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Mutation {
     /// Keep the first `len` bytes.
-    Truncate { len: usize },
+    Truncate {
+        /// Bytes kept.
+        len: usize,
+    },
     /// Flip one bit at each `(byte, bit)`.
-    FlipBits { bits: Vec<(usize, u8)> },
+    FlipBits {
+        /// `(byte index, bit index)` pairs.
+        bits: Vec<(usize, u8)>,
+    },
     /// Overwrite one byte.
-    SetByte { at: usize, value: u8 },
+    SetByte {
+        /// Byte index.
+        at: usize,
+        /// New value.
+        value: u8,
+    },
     /// Remove `len` bytes at `at`.
-    Delete { at: usize, len: usize },
+    Delete {
+        /// First byte removed.
+        at: usize,
+        /// Bytes removed.
+        len: usize,
+    },
     /// Repeat the `len` bytes at `at` right after themselves.
-    Duplicate { at: usize, len: usize },
+    Duplicate {
+        /// First byte repeated.
+        at: usize,
+        /// Bytes repeated.
+        len: usize,
+    },
     /// Insert bytes at `at`.
-    Insert { at: usize, bytes: Vec<u8> },
+    Insert {
+        /// Insertion index.
+        at: usize,
+        /// Bytes inserted.
+        bytes: Vec<u8>,
+    },
     /// Replace the ASCII digit run `start..end` by `with`.
-    Number { start: usize, end: usize, with: &'static str },
+    Number {
+        /// First byte of the digit run.
+        start: usize,
+        /// One past the last byte of the digit run.
+        end: usize,
+        /// Replacement text.
+        with: &'static str,
+    },
     /// Overwrite `width` (4 or 8) bytes at `at` with `value`, little-endian.
-    Word { at: usize, width: usize, value: u64 },
+    Word {
+        /// Byte index.
+        at: usize,
+        /// Bytes overwritten (4 or 8).
+        width: usize,
+        /// Value written, little-endian.
+        value: u64,
+    },
 }
 
 impl Mutation {
@@ -148,23 +188,47 @@ pub fn draw(rng: &mut impl RngCore, bytes: &[u8], runs: &[(usize, usize)]) -> Mu
         }
         15..35 => {
             let k = rng.random_range(1..=4);
-            Mutation::FlipBits { bits: (0..k).map(|_| (head_pos(rng), rng.random_range(0..8))).collect() }
+            Mutation::FlipBits {
+                bits: (0..k)
+                    .map(|_| (head_pos(rng), rng.random_range(0..8)))
+                    .collect(),
+            }
         }
         35..43 => {
             let value = [0x00, 0xff, 0x7f, 0x80, b'"', b'{', b'\n', b' '][rng.random_range(0..8)];
-            Mutation::SetByte { at: head_pos(rng), value }
+            Mutation::SetByte {
+                at: head_pos(rng),
+                value,
+            }
         }
-        43..49 => Mutation::Delete { at: head_pos(rng), len: rng.random_range(1..=16) },
-        49..54 => Mutation::Duplicate { at: head_pos(rng), len: rng.random_range(1..=64) },
+        43..49 => Mutation::Delete {
+            at: head_pos(rng),
+            len: rng.random_range(1..=16),
+        },
+        49..54 => Mutation::Duplicate {
+            at: head_pos(rng),
+            len: rng.random_range(1..=64),
+        },
         54..58 => {
             let len = rng.random_range(1..=8);
-            Mutation::Insert { at: pos(rng), bytes: (0..len).map(|_| rng.random()).collect() }
+            Mutation::Insert {
+                at: pos(rng),
+                bytes: (0..len).map(|_| rng.random()).collect(),
+            }
         }
         58..85 if !runs.is_empty() => {
             // numbers in the first 4 KiB (headers) are favoured
             let head: Vec<&(usize, usize)> = runs.iter().filter(|r| r.0 < 4096).collect();
-            let &(start, end) = if !head.is_empty() && rng.random_bool(0.7) { head[rng.random_range(0..head.len())] } else { &runs[rng.random_range(0..runs.len())] };
-            Mutation::Number { start, end, with: NUMBER_REPLACEMENTS[rng.random_range(0..NUMBER_REPLACEMENTS.len())] }
+            let &(start, end) = if !head.is_empty() && rng.random_bool(0.7) {
+                head[rng.random_range(0..head.len())]
+            } else {
+                &runs[rng.random_range(0..runs.len())]
+            };
+            Mutation::Number {
+                start,
+                end,
+                with: NUMBER_REPLACEMENTS[rng.random_range(0..NUMBER_REPLACEMENTS.len())],
+            }
         }
         _ => {
             let width = if rng.random_bool(0.5) { 4 } else { 8 };
@@ -194,15 +258,46 @@ mod tests {
     fn mutations_apply_as_described() {
         let b = b"ab12cd345".to_vec();
         assert_eq!(Mutation::Truncate { len: 3 }.apply(&b), b"ab1");
-        assert_eq!(Mutation::FlipBits { bits: vec![(0, 0)] }.apply(&b)[0], b'a' ^ 1);
+        assert_eq!(
+            Mutation::FlipBits { bits: vec![(0, 0)] }.apply(&b)[0],
+            b'a' ^ 1
+        );
         assert_eq!(Mutation::Delete { at: 2, len: 2 }.apply(&b), b"abcd345");
-        assert_eq!(Mutation::Duplicate { at: 0, len: 2 }.apply(&b), b"abab12cd345");
-        assert_eq!(Mutation::Number { start: 2, end: 4, with: "4294967296" }.apply(&b), b"ab4294967296cd345");
-        assert_eq!(Mutation::Word { at: 0, width: 4, value: 1 }.apply(&b)[..4], [1, 0, 0, 0]);
+        assert_eq!(
+            Mutation::Duplicate { at: 0, len: 2 }.apply(&b),
+            b"abab12cd345"
+        );
+        assert_eq!(
+            Mutation::Number {
+                start: 2,
+                end: 4,
+                with: "4294967296"
+            }
+            .apply(&b),
+            b"ab4294967296cd345"
+        );
+        assert_eq!(
+            Mutation::Word {
+                at: 0,
+                width: 4,
+                value: 1
+            }
+            .apply(&b)[..4],
+            [1, 0, 0, 0]
+        );
         assert_eq!(digit_runs(&b), vec![(2, 4), (6, 9)]);
         // out-of-range positions never panic
         assert_eq!(Mutation::Delete { at: 100, len: 5 }.apply(&b), b);
-        assert_eq!(Mutation::Word { at: 7, width: 8, value: u64::MAX }.apply(&b).len(), b.len());
+        assert_eq!(
+            Mutation::Word {
+                at: 7,
+                width: 8,
+                value: u64::MAX
+            }
+            .apply(&b)
+            .len(),
+            b.len()
+        );
     }
 
     #[test]
@@ -214,7 +309,15 @@ mod tests {
         let a: Vec<Mutation> = (0..200).map(|_| draw(&mut r1, &b, &runs)).collect();
         let c: Vec<Mutation> = (0..200).map(|_| draw(&mut r2, &b, &runs)).collect();
         assert_eq!(a, c);
-        let kinds: std::collections::BTreeSet<_> = a.iter().map(std::mem::discriminant).map(|d| format!("{d:?}")).collect();
-        assert!(kinds.len() >= 7, "only {} mutation kinds in 200 draws", kinds.len());
+        let kinds: std::collections::BTreeSet<_> = a
+            .iter()
+            .map(std::mem::discriminant)
+            .map(|d| format!("{d:?}"))
+            .collect();
+        assert!(
+            kinds.len() >= 7,
+            "only {} mutation kinds in 200 draws",
+            kinds.len()
+        );
     }
 }

@@ -1,6 +1,7 @@
 //! The mutation harness over every reader (`GGPT_FUZZ_CASES` cases per target, default 1500,
 //! seed `GGPT_FUZZ_SEED`, default 42), and tests that the harness itself catches panics,
 //! errors that do not name the file, and over-bound allocations.
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 use std::path::Path;
 
@@ -10,16 +11,27 @@ use ggpt_fuzz::harness::{RunOptions, SeedFile, Target};
 static ALLOCATOR: ggpt_fuzz::alloc::BoundedAllocator = ggpt_fuzz::alloc::BoundedAllocator;
 
 fn env_u64(name: &str, default: u64) -> u64 {
-    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
 }
 
 fn options(cases: u64, dir: &Path) -> RunOptions {
-    RunOptions { cases, seed: env_u64("GGPT_FUZZ_SEED", 42), only_case: None, work_dir: dir.to_path_buf() }
+    RunOptions {
+        cases,
+        seed: env_u64("GGPT_FUZZ_SEED", 42),
+        only_case: None,
+        work_dir: dir.to_path_buf(),
+    }
 }
 
 #[test]
 fn every_reader_survives_the_mutation_corpus() {
-    assert!(ggpt_fuzz::alloc::installed(), "the bounded allocator is not the global allocator");
+    assert!(
+        ggpt_fuzz::alloc::installed(),
+        "the bounded allocator is not the global allocator"
+    );
     let dir = tempfile::tempdir().unwrap();
     let o = options(env_u64("GGPT_FUZZ_CASES", 1500), dir.path());
     let reports = ggpt_fuzz::run(&[], &o, &mut |_, _| {}).unwrap();
@@ -30,7 +42,13 @@ fn every_reader_survives_the_mutation_corpus() {
         assert_eq!(r.cases, o.cases, "{}", r.target);
         // every target must reject a good share of its mutations: a reader that accepts
         // everything would not be tested by this harness
-        assert!(r.rejected * 10 >= r.cases, "{}: only {} of {} mutations rejected", r.target, r.rejected, r.cases);
+        assert!(
+            r.rejected * 10 >= r.cases,
+            "{}: only {} of {} mutations rejected",
+            r.target,
+            r.rejected,
+            r.cases
+        );
     }
     let failures: usize = reports.iter().map(|r| r.failures.len()).sum();
     assert_eq!(failures, 0, "failing cases:\n{table}");
@@ -43,7 +61,11 @@ struct Faulty {
 
 impl Target for Faulty {
     fn name(&self) -> &'static str {
-        if self.panic { "faulty-panic" } else { "faulty-unnamed" }
+        if self.panic {
+            "faulty-panic"
+        } else {
+            "faulty-unnamed"
+        }
     }
     fn describe(&self) -> &'static str {
         "test reader"
@@ -67,9 +89,22 @@ fn the_harness_reports_panics_and_errors_that_do_not_name_the_file() {
     let dir = tempfile::tempdir().unwrap();
     for panic in [true, false] {
         let r = ggpt_fuzz::run_custom(&Faulty { panic }, &options(300, dir.path())).unwrap();
-        assert!(!r.failures.is_empty(), "{}: no failure found in {} cases", r.target, r.cases);
-        let want = if panic { "panic: deliberate" } else { "does not name" };
-        assert!(r.failures.iter().all(|f| f.problem.contains(want)), "{:?}", r.failures.first());
+        assert!(
+            !r.failures.is_empty(),
+            "{}: no failure found in {} cases",
+            r.target,
+            r.cases
+        );
+        let want = if panic {
+            "panic: deliberate"
+        } else {
+            "does not name"
+        };
+        assert!(
+            r.failures.iter().all(|f| f.problem.contains(want)),
+            "{:?}",
+            r.failures.first()
+        );
         assert!(r.same + r.different > 0, "{}: every case failed", r.target);
     }
 }
@@ -91,11 +126,19 @@ fn allocation_probe_child() {
 fn an_over_bound_allocation_aborts_with_the_case_named() {
     let exe = std::env::current_exe().unwrap();
     let out = std::process::Command::new(exe)
-        .args(["--exact", "allocation_probe_child", "--nocapture", "--test-threads=1"])
+        .args([
+            "--exact",
+            "allocation_probe_child",
+            "--nocapture",
+            "--test-threads=1",
+        ])
         .env("GGPT_FUZZ_ALLOC_PROBE", "1")
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "the probe allocated 64 MiB under a 1 MiB bound");
+    assert!(
+        !out.status.success(),
+        "the probe allocated 64 MiB under a 1 MiB bound"
+    );
     assert!(stderr.contains("refused an allocation of 67108864 bytes (bound 1048576 bytes) in target npy, case 17, seed 5"), "stderr: {stderr}");
 }

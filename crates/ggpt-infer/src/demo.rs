@@ -79,12 +79,22 @@ fn demo_model(opts: &DemoOptions) -> Result<ModelSpec> {
 
 /// Generates a synthetic scene (`ggpt-synth`, with simulated feed-forward prediction and dense
 /// matches), writes it to `<out>/scene`, runs SfM and refinement and writes every output of
-/// `ggpt-infer run` into `<out>`.
-pub fn run_demo(opts: &DemoOptions, log: &mut StageLog) -> Result<DemoReport> {
+/// `ggpt-infer run` into `<out>`. `progress` receives the SfM and refinement reports (see
+/// [`run_scene`]).
+pub fn run_demo(
+    opts: &DemoOptions,
+    log: &mut StageLog,
+    progress: &mut dyn FnMut(ggpt_core::Progress),
+) -> Result<DemoReport> {
     let spec = demo_model(opts)?;
     let mut run_opts = opts.run.clone();
     // the caller validated the flags under their own names ([`ChunkingSettings::validate`])
-    let chunking = resolve_chunking(&run_opts.refine.chunking, spec.chunking_layer(), &opts.chunking, |f| format!("chunking.{f}"))?;
+    let chunking = resolve_chunking(
+        &run_opts.refine.chunking,
+        spec.chunking_layer(),
+        &opts.chunking,
+        |f| format!("chunking.{f}"),
+    )?;
     tracing::info!("chunk sampler: {}", chunking.describe());
     run_opts.refine.chunking = chunking.params.clone();
     let device = device_from_name(&opts.device)?;
@@ -107,7 +117,14 @@ pub fn run_demo(opts: &DemoOptions, log: &mut StageLog) -> Result<DemoReport> {
     let scene_dir = opts.out.join("scene");
     write_scene(&scene_dir, &scene)?;
     log.finish();
-    tracing::info!("synthetic scene {} ({} views, {}x{}) written to {}", scene.name, opts.views, opts.width, opts.height, scene_dir.display());
+    tracing::info!(
+        "synthetic scene {} ({} views, {}x{}) written to {}",
+        scene.name,
+        opts.views,
+        opts.width,
+        opts.height,
+        scene_dir.display()
+    );
 
     let config = serde_json::json!({
         "command": "demo",
@@ -127,6 +144,19 @@ pub fn run_demo(opts: &DemoOptions, log: &mut StageLog) -> Result<DemoReport> {
         "dtype": "f32",
         "seed": opts.seed,
     });
-    let run = run_scene(&mut scene, &mut refiner, &run_opts, &opts.out, &config, meta, log)?;
-    Ok(DemoReport { scene_dir, weights: spec.weights, run })
+    let run = run_scene(
+        &mut scene,
+        &mut refiner,
+        &run_opts,
+        &opts.out,
+        &config,
+        meta,
+        log,
+        progress,
+    )?;
+    Ok(DemoReport {
+        scene_dir,
+        weights: spec.weights,
+        run,
+    })
 }

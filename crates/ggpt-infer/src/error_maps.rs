@@ -6,11 +6,11 @@
 //! Errors are clamped to `[0, max_cm]` and colour-mapped with Turbo (blue = 0, red = `max_cm`);
 //! pixels without valid GT are dark grey.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use ggpt_core::Dims;
 use ggpt_core::metrics::PointEvaluation;
-use image::{ExtendedColorType, ImageEncoder, codecs::png::PngEncoder};
+use ggpt_scene::export::{Rgb8Image, RunOutput};
 
 use crate::{InferError, Result};
 
@@ -21,11 +21,19 @@ const NO_GT_COLOR: [u8; 3] = [40, 40, 40];
 
 /// Turbo colour map (polynomial approximation by Google, max error < 1 %) at `t ∈ [0, 1]`.
 pub fn turbo(t: f64) -> [u8; 3] {
-    let t = if t.is_finite() { t.clamp(0.0, 1.0) } else { 1.0 };
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        1.0
+    };
     let (t2, t3, t4, t5) = (t * t, t * t * t, t.powi(4), t.powi(5));
-    let r = 0.13572138 + 4.61539260 * t - 42.66032258 * t2 + 132.13108234 * t3 - 152.94239396 * t4 + 59.28637943 * t5;
-    let g = 0.09140261 + 2.19418839 * t + 4.84296658 * t2 - 14.18503333 * t3 + 4.27729857 * t4 + 2.82956604 * t5;
-    let b = 0.10667330 + 12.64194608 * t - 60.58204836 * t2 + 110.36276771 * t3 - 89.90310912 * t4 + 27.34824973 * t5;
+    let r = 0.13572138 + 4.61539260 * t - 42.66032258 * t2 + 132.13108234 * t3 - 152.94239396 * t4
+        + 59.28637943 * t5;
+    let g = 0.09140261 + 2.19418839 * t + 4.84296658 * t2 - 14.18503333 * t3
+        + 4.27729857 * t4
+        + 2.82956604 * t5;
+    let b = 0.10667330 + 12.64194608 * t - 60.58204836 * t2 + 110.36276771 * t3 - 89.90310912 * t4
+        + 27.34824973 * t5;
     [r, g, b].map(|v| (255.0 * v.clamp(0.0, 1.0)).round() as u8)
 }
 
@@ -34,12 +42,17 @@ pub fn turbo(t: f64) -> [u8; 3] {
 fn error_image(ev: &PointEvaluation, dims: Dims, max_cm: f64) -> Result<Vec<[u8; 3]>> {
     let px = dims.pixels();
     if ev.mask.len() != px {
-        return Err(InferError::Invalid(format!("error map: evaluation mask has {} pixels, expected {px}", ev.mask.len())));
+        return Err(InferError::Invalid(format!(
+            "error map: evaluation mask has {} pixels, expected {px}",
+            ev.mask.len()
+        )));
     }
     let mut out = vec![NO_GT_COLOR; px];
     let mut errors = ev.errors_cm.iter();
     for (p, _) in ev.mask.iter().enumerate().filter(|(_, m)| **m) {
-        let e = errors.next().ok_or_else(|| InferError::Invalid("error map: fewer errors than evaluated pixels".into()))?;
+        let e = errors.next().ok_or_else(|| {
+            InferError::Invalid("error map: fewer errors than evaluated pixels".into())
+        })?;
         if let Some(o) = out.get_mut(p) {
             *o = turbo(e / max_cm);
         }
@@ -47,39 +60,56 @@ fn error_image(ev: &PointEvaluation, dims: Dims, max_cm: f64) -> Result<Vec<[u8;
     Ok(out)
 }
 
-/// Encodes an RGB8 image as PNG bytes.
-pub fn encode_png(rgb: &[u8], width: usize, height: usize, path: &Path) -> Result<Vec<u8>> {
-    let mut bytes = Vec::new();
-    let (w, h) = (u32::try_from(width), u32::try_from(height));
-    let (Ok(w), Ok(h)) = (w, h) else {
-        return Err(InferError::Write { path: path.to_path_buf(), message: format!("image {width}x{height} too large") });
-    };
-    PngEncoder::new(&mut bytes)
-        .write_image(rgb, w, h, ExtendedColorType::Rgb8)
-        .map_err(|e| InferError::Write { path: path.to_path_buf(), message: e.to_string() })?;
-    Ok(bytes)
+/// Writes the error maps of [`render_error_maps`] through the run's output writer
+/// (`error_maps/view_{i:03}.png`, [`RunOutput::write_error_maps`]). Returns the files written.
+pub fn write_error_maps(
+    out: &mut RunOutput,
+    dims: Dims,
+    images: &[f32],
+    ff: &PointEvaluation,
+    refined: &PointEvaluation,
+    max_cm: f64,
+) -> Result<Vec<PathBuf>> {
+    let maps = render_error_maps(dims, images, ff, refined, max_cm)?;
+    Ok(out.write_error_maps(&maps)?)
 }
 
-/// Writes one PNG per view into `dir` (created): image | feed-forward error | refined error.
-/// `images` is `[N, h, w, 3]` in `[0, 1]`. Returns the files written.
-pub fn write_error_maps(dir: &Path, dims: Dims, images: &[f32], ff: &PointEvaluation, refined: &PointEvaluation, max_cm: f64) -> Result<Vec<PathBuf>> {
+/// One RGB image per view, three panels side by side: image | feed-forward error | refined
+/// error (`[h, 3 w, 3]`). `images` is `[N, h, w, 3]` in `[0, 1]`.
+pub fn render_error_maps(
+    dims: Dims,
+    images: &[f32],
+    ff: &PointEvaluation,
+    refined: &PointEvaluation,
+    max_cm: f64,
+) -> Result<Vec<Rgb8Image>> {
     if images.len() != 3 * dims.pixels() {
-        return Err(InferError::Invalid(format!("error map: {} image values for {} pixels", images.len(), dims.pixels())));
+        return Err(InferError::Invalid(format!(
+            "error map: {} image values for {} pixels",
+            images.len(),
+            dims.pixels()
+        )));
     }
-    if !(max_cm > 0.0) {
-        return Err(InferError::Invalid(format!("error map: colour scale maximum must be > 0 cm, got {max_cm}")));
+    if max_cm.is_nan() || max_cm <= 0.0 {
+        return Err(InferError::Invalid(format!(
+            "error map: colour scale maximum must be > 0 cm, got {max_cm}"
+        )));
     }
     let a = error_image(ff, dims, max_cm)?;
     let b = error_image(refined, dims, max_cm)?;
     let (h, w) = (dims.h, dims.w);
-    let mut files = Vec::with_capacity(dims.n);
+    let mut maps = Vec::with_capacity(dims.n);
     for v in 0..dims.n {
         let mut rgb = Vec::with_capacity(3 * 3 * w * h);
         for y in 0..h {
             let row = dims.index(v, y, 0);
             for x in 0..w {
                 let p = row + x;
-                rgb.extend(images[3 * p..3 * p + 3].iter().map(|&c| ggpt_scene::export::color_u8(c)));
+                rgb.extend(
+                    images[3 * p..3 * p + 3]
+                        .iter()
+                        .map(|&c| ggpt_scene::export::color_u8(c)),
+                );
             }
             for panel in [&a, &b] {
                 for x in 0..w {
@@ -87,12 +117,13 @@ pub fn write_error_maps(dir: &Path, dims: Dims, images: &[f32], ff: &PointEvalua
                 }
             }
         }
-        let path = dir.join(format!("view_{v:03}.png"));
-        let bytes = encode_png(&rgb, 3 * w, h, &path)?;
-        ggpt_core::io::atomic::write_bytes_atomic(&path, &bytes)?;
-        files.push(path);
+        maps.push(Rgb8Image {
+            width: 3 * w,
+            height: h,
+            rgb,
+        });
     }
-    Ok(files)
+    Ok(maps)
 }
 
 #[cfg(test)]
@@ -116,7 +147,12 @@ mod tests {
         let dims = Dims { n: 2, h: 3, w: 4 };
         let px = dims.pixels();
         let mask: Vec<bool> = (0..px).map(|p| p % 5 != 0).collect();
-        let errors: Vec<f64> = mask.iter().filter(|m| **m).enumerate().map(|(i, _)| i as f64).collect();
+        let errors: Vec<f64> = mask
+            .iter()
+            .filter(|m| **m)
+            .enumerate()
+            .map(|(i, _)| i as f64)
+            .collect();
         let ev = PointEvaluation {
             metrics: serde_json::from_value(serde_json::json!({
                 "num_points": 0, "recall_pct": [], "auc_1": 0.0, "auc_3": 0.0, "auc_5": 0.0, "auc_10": 0.0,
@@ -130,8 +166,9 @@ mod tests {
             mask,
         };
         let dir = tempfile::tempdir().unwrap();
+        let mut out = RunOutput::create(dir.path()).unwrap();
         let images = vec![0.5f32; 3 * px];
-        let files = write_error_maps(dir.path(), dims, &images, &ev, &ev, 10.0).unwrap();
+        let files = write_error_maps(&mut out, dims, &images, &ev, &ev, 10.0).unwrap();
         assert_eq!(files.len(), 2);
         let img = image::open(&files[1]).unwrap().to_rgb8();
         assert_eq!(img.dimensions(), (12, 3));
@@ -140,7 +177,7 @@ mod tests {
         assert_eq!(img.get_pixel(4, 0).0, img.get_pixel(8, 0).0);
         // p = 15 (view 1, y 0, x 3) has no GT -> grey.
         assert_eq!(img.get_pixel(4 + 3, 0).0, NO_GT_COLOR);
-        assert!(write_error_maps(dir.path(), dims, &images[1..], &ev, &ev, 10.0).is_err());
-        assert!(write_error_maps(dir.path(), dims, &images, &ev, &ev, 0.0).is_err());
+        assert!(write_error_maps(&mut out, dims, &images[1..], &ev, &ev, 10.0).is_err());
+        assert!(write_error_maps(&mut out, dims, &images, &ev, &ev, 0.0).is_err());
     }
 }

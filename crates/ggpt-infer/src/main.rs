@@ -10,19 +10,22 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use clap::{Args, Parser, Subcommand};
-use ggpt_model::chunk_io::{chunk_outputs_to_bytes, read_chunk_inputs};
-use ggpt_model::device::device_from_name;
-use ggpt_model::infer::prepare_chunks;
-use ggpt_model::weights::load_checkpoint;
-use ggpt_model::{Ggpt, GgptConfig};
-use ggpt_infer::demo::{DemoOptions, run_demo};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use ggpt_cli::{
+    ChunkingArgs, DeviceArgs, ModelArgs, ProgressArgs, SceneKindArg, SfmPresetArg, StageBars,
+};
 use ggpt_eval::format_refinement_table as format_table;
-use ggpt_model::model_dir::{load_model, resolve_model};
-use ggpt_scene::chunk_settings::{ChunkingSettings, resolve_chunking};
+use ggpt_infer::demo::{DemoOptions, run_demo};
 use ggpt_infer::pipeline::{RunOptions, RunReport, run_scene};
 use ggpt_infer::refiner::BurnRefiner;
 use ggpt_infer::rss::{StageLog, StageTiming};
+use ggpt_model::chunk_io::{chunk_outputs_to_bytes, read_chunk_inputs};
+use ggpt_model::device::device_from_name;
+use ggpt_model::infer::prepare_chunks;
+use ggpt_model::model_dir::{load_model, resolve_model};
+use ggpt_model::weights::load_checkpoint;
+use ggpt_model::{Ggpt, GgptConfig};
+use ggpt_scene::chunk_settings::resolve_chunking;
 use ggpt_scene::driver::RefineOptions;
 use ggpt_scene::export::{ColmapExportOptions, ExportOptions};
 use ggpt_scene::fusion::FusionMode;
@@ -59,46 +62,61 @@ enum Command {
 /// Options of `ggpt-infer chunk`.
 #[derive(Args, Debug)]
 struct ChunkArgs {
-    /// Model configuration JSON (the official `model_config` object, or a file with a
-    /// `model_config` key such as a fixture manifest). Conflicts with `--preset`.
-    #[arg(long, conflicts_with = "preset")]
-    model_config: Option<PathBuf>,
-    /// Built-in configuration: `released` (53.4 M parameters), `small` (fixture) or `tiny`.
-    #[arg(long)]
-    preset: Option<String>,
-    /// Weights: official `.pth` / `.safetensors`, or a burnpack `.bpk` of this project.
-    #[arg(long)]
-    weights: PathBuf,
+    /// The network: `--weights` (official `.pth` / `.safetensors` or a project `.bpk`) with
+    /// `--model-config FILE` or `--preset NAME`.
+    #[command(flatten)]
+    model: ModelArgs,
     /// Input chunk records (safetensors).
     #[arg(long)]
     input: PathBuf,
     /// Output file (safetensors), written atomically.
     #[arg(long)]
     output: PathBuf,
-    /// Compute device: `cpu` (fastest CPU backend), `ndarray`, `flex` or `wgpu`.
-    #[arg(long, default_value = "cpu")]
-    device: String,
-    /// CPU threads for the backends (0 = all cores).
-    #[arg(long, default_value_t = 0)]
-    threads: usize,
+    #[command(flatten)]
+    device: DeviceArgs,
     /// Run all chunks in one batched forward instead of one forward per chunk.
     #[arg(long)]
     batched: bool,
 }
 
+/// `--fusion`: how overlapping chunks are fused (`ggpt_scene::fusion::FusionMode`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+enum FusionArg {
+    /// The official plain mean.
+    Mean,
+    /// Confidence-weighted mean (an extension).
+    Confidence,
+}
+
+impl From<FusionArg> for FusionMode {
+    fn from(f: FusionArg) -> Self {
+        match f {
+            FusionArg::Mean => FusionMode::Mean,
+            FusionArg::Confidence => FusionMode::ConfidenceWeighted,
+        }
+    }
+}
+
+/// `--colmap-points`: the `points3D` of the exported COLMAP model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+enum ColmapPointsArg {
+    /// The confidence-filtered refined points, a seeded subset of at most
+    /// `--colmap-max-points`.
+    Refined,
+    /// Cameras and images only.
+    None,
+}
+
 /// Options shared by `run` and `demo`.
 #[derive(Args, Debug)]
 struct CommonArgs {
-    /// Compute device: `cpu` (fastest CPU backend), `ndarray`, `flex` or `wgpu`.
-    #[arg(long, default_value = "cpu")]
-    device: String,
-    /// CPU threads for the backends (0 = all cores).
-    #[arg(long, default_value_t = 0)]
-    threads: usize,
-    /// Fusion of overlapping chunks: `mean` (official plain mean) or `confidence`
-    /// (confidence-weighted mean, an extension).
-    #[arg(long, default_value = "mean", value_parser = ["mean", "confidence"])]
-    fusion: String,
+    #[command(flatten)]
+    device: DeviceArgs,
+    /// Fusion of overlapping chunks.
+    #[arg(long, value_enum, default_value_t = FusionArg::Mean)]
+    fusion: FusionArg,
     /// PLY confidence filter: keep pixels with confidence >= this quantile of all confidences.
     #[arg(long, default_value_t = ggpt_scene::export::DEFAULT_CONF_QUANTILE)]
     conf_quantile: f64,
@@ -109,25 +127,13 @@ struct CommonArgs {
     /// chunk runs alone). Bounds the memory.
     #[arg(long, default_value_t = ggpt_scene::driver::DEFAULT_MAX_TOKENS_PER_FORWARD)]
     max_tokens_per_forward: usize,
-    /// Chunk sampler: cube half-size as a fraction of the scene radius R (pipeline.md §5).
-    /// Precedence: this flag, else the model folder's inference.json, else the official 0.2.
-    #[arg(long, value_name = "F")]
-    chunk_size: Option<f64>,
-    /// Chunk sampler: maximum pixels per chunk (a larger cube shrinks by 0.9 until it fits).
-    /// Precedence: this flag, else the model's inference.json, else 400000.
-    #[arg(long, value_name = "N")]
-    max_chunk_pixels: Option<usize>,
-    /// Chunk sampler: initial minimum number of DLT pixels of an accepted chunk (lowered on
-    /// rejections). Precedence: this flag, else the model's inference.json, else 100.
-    #[arg(long, value_name = "N")]
-    min_chunk_dlt: Option<usize>,
-    /// Chunk sampler: initial minimum number of pixels of an accepted chunk (lowered on
-    /// rejections). Precedence: this flag, else the model's inference.json, else 10000.
-    #[arg(long, value_name = "N")]
-    min_chunk_pixels: Option<usize>,
-    /// SfM threshold preset when the SfM stage runs: `demo`, `benchmark` or `many-views`.
-    #[arg(long, default_value = "demo")]
-    sfm_preset: String,
+    /// Chunk sampler flags; a flag that is not given comes from the model folder's
+    /// `inference.json`, else the official default.
+    #[command(flatten)]
+    chunking: ChunkingArgs,
+    /// SfM threshold preset when the SfM stage runs.
+    #[arg(long, value_enum, default_value_t)]
+    sfm_preset: SfmPresetArg,
     /// With no DLT point at all (empty guidance), export the unrefined feed-forward points
     /// (confidence 0) instead of failing.
     #[arg(long)]
@@ -135,10 +141,9 @@ struct CommonArgs {
     /// Write the COLMAP model as text instead of binary.
     #[arg(long)]
     colmap_text: bool,
-    /// `points3D` of the COLMAP model: `refined` (the confidence-filtered refined points, a
-    /// seeded subset of at most --colmap-max-points) or `none` (cameras and images only).
-    #[arg(long, default_value = "refined", value_parser = ["refined", "none"])]
-    colmap_points: String,
+    /// `points3D` of the COLMAP model.
+    #[arg(long, value_enum, default_value_t = ColmapPointsArg::Refined)]
+    colmap_points: ColmapPointsArg,
     /// Maximum number of COLMAP `points3D` (seeded uniform subset of the filtered points).
     #[arg(long, default_value_t = ggpt_scene::export::DEFAULT_COLMAP_MAX_POINTS)]
     colmap_max_points: usize,
@@ -155,9 +160,8 @@ struct CommonArgs {
     /// Upper end of the error-map colour scale (cm).
     #[arg(long, default_value_t = ggpt_infer::error_maps::DEFAULT_ERROR_MAP_MAX_CM)]
     error_map_max_cm: f64,
-    /// No progress bars.
-    #[arg(long)]
-    quiet: bool,
+    #[command(flatten)]
+    progress: ProgressArgs,
 }
 
 /// Options of `ggpt-infer run`.
@@ -166,16 +170,9 @@ struct RunArgs {
     /// Scene directory.
     #[arg(long)]
     scene: PathBuf,
-    /// Weights: official `.pth` / `.safetensors`, a project `.bpk`, or a model folder holding
-    /// `model.safetensors` (+ `model_config.json`).
-    #[arg(long)]
-    weights: PathBuf,
-    /// Model configuration JSON (default: `model_config.json` next to the weights).
-    #[arg(long, conflicts_with = "preset")]
-    model_config: Option<PathBuf>,
-    /// Built-in configuration: `released`, `small` or `tiny`.
-    #[arg(long)]
-    preset: Option<String>,
+    /// The network (`--weights` is required).
+    #[command(flatten)]
+    model: ModelArgs,
     /// Output folder.
     #[arg(long)]
     out: PathBuf,
@@ -196,9 +193,9 @@ struct DemoArgs {
     /// Seed of the scene generator, RANSAC, SfM and export.
     #[arg(long, default_value_t = 42)]
     seed: u64,
-    /// Scene family: `room` or `object`.
-    #[arg(long, default_value = "room", value_parser = ["room", "object"])]
-    kind: String,
+    /// Scene family.
+    #[arg(long, value_enum, default_value_t)]
+    kind: SceneKindArg,
     /// Feed-forward width (multiple of 14).
     #[arg(long, default_value_t = 518)]
     width: usize,
@@ -208,36 +205,11 @@ struct DemoArgs {
     /// Output folder (the scene goes to `<out>/scene`).
     #[arg(long, default_value = "ggpt_demo")]
     out: PathBuf,
-    /// Weights file or model folder (default: the shipped `models/ggpt-synth-small/`, embedded
-    /// in the binary).
-    #[arg(long)]
-    weights: Option<PathBuf>,
-    /// Model configuration JSON (default: `model_config.json` next to the weights).
-    #[arg(long, conflicts_with = "preset")]
-    model_config: Option<PathBuf>,
-    /// Built-in configuration instead of a file: `released`, `small` or `tiny`.
-    #[arg(long)]
-    preset: Option<String>,
+    /// The network (default: the shipped `models/ggpt-synth-small/`, embedded in the binary).
+    #[command(flatten)]
+    model: ModelArgs,
     #[command(flatten)]
     common: CommonArgs,
-}
-
-impl CommonArgs {
-    /// The explicitly given chunk-sampler flags.
-    fn chunking(&self) -> ChunkingSettings {
-        ChunkingSettings { chunk_size: self.chunk_size, max_pixels: self.max_chunk_pixels, min_dlt: self.min_chunk_dlt, min_pixels: self.min_chunk_pixels }
-    }
-}
-
-/// The command-line flag of a [`ChunkingSettings`] field, for messages.
-fn chunking_flag(field: &str) -> String {
-    match field {
-        "chunk_size" => "--chunk-size".into(),
-        "max_pixels" => "--max-chunk-pixels".into(),
-        "min_dlt" => "--min-chunk-dlt".into(),
-        "min_pixels" => "--min-chunk-pixels".into(),
-        other => other.into(),
-    }
 }
 
 fn configure_threads(threads: usize) -> Result<()> {
@@ -254,10 +226,17 @@ fn parse_colmap_resolution(s: &str) -> Result<Option<(usize, usize)>> {
     if s == "ff" {
         return Ok(None);
     }
-    let parsed = s.split_once(['x', 'X']).and_then(|(w, h)| Some((w.trim().parse::<usize>().ok()?, h.trim().parse::<usize>().ok()?)));
+    let parsed = s.split_once(['x', 'X']).and_then(|(w, h)| {
+        Some((
+            w.trim().parse::<usize>().ok()?,
+            h.trim().parse::<usize>().ok()?,
+        ))
+    });
     match parsed {
         Some((w, h)) if w > 0 && h > 0 => Ok(Some((h, w))),
-        _ => bail!("--colmap-resolution {s:?}: expected `ff` or WIDTHxHEIGHT with positive integers (e.g. 1036x784)"),
+        _ => bail!(
+            "--colmap-resolution {s:?}: expected `ff` or WIDTHxHEIGHT with positive integers (e.g. 1036x784)"
+        ),
     }
 }
 
@@ -272,7 +251,7 @@ fn run_options(c: &CommonArgs, seed: u64, chunk_seed: Option<u64>) -> Result<Run
         seed,
         chunk_seed,
         max_tokens_per_forward: c.max_tokens_per_forward,
-        fusion: if c.fusion == "confidence" { FusionMode::ConfidenceWeighted } else { FusionMode::Mean },
+        fusion: c.fusion.into(),
         allow_unrefined: c.allow_unrefined,
         ..RefineOptions::default()
     };
@@ -282,7 +261,7 @@ fn run_options(c: &CommonArgs, seed: u64, chunk_seed: Option<u64>) -> Result<Run
         seed,
         colmap: Some(ColmapExportOptions {
             text: c.colmap_text,
-            points: c.colmap_points == "refined",
+            points: c.colmap_points == ColmapPointsArg::Refined,
             max_points: c.colmap_max_points,
             resolution: parse_colmap_resolution(&c.colmap_resolution)?,
             simple_pinhole: c.colmap_simple_pinhole,
@@ -293,18 +272,19 @@ fn run_options(c: &CommonArgs, seed: u64, chunk_seed: Option<u64>) -> Result<Run
     Ok(RunOptions {
         refine,
         export,
-        sfm_preset: Preset::parse(&c.sfm_preset)?,
+        sfm_preset: Preset::parse(c.sfm_preset.name())?,
         evaluate: true,
         error_maps: !c.no_error_maps,
         error_map_max_cm: c.error_map_max_cm,
-        progress: !c.quiet,
     })
 }
 
 fn print_stages(stages: &[StageTiming]) {
     println!("{:<20} {:>10} {:>14}", "stage", "seconds", "peak RSS MiB");
     for s in stages {
-        let m = s.peak_rss_mib.map_or("-".to_string(), |m| format!("{m:.0}"));
+        let m = s
+            .peak_rss_mib
+            .map_or("-".to_string(), |m| format!("{m:.0}"));
         println!("{:<20} {:>10.3} {:>14}", s.stage, s.seconds, m);
     }
 }
@@ -320,35 +300,66 @@ fn print_report(r: &RunReport) {
         r.refined.forwards,
         r.refined.total_tokens,
         r.refined.dims.pixels(),
-        if r.refined.unrefined { " (UNREFINED: no DLT point)" } else if r.refined.no_chunk_fallback { " (no chunk accepted: aligned feed-forward points)" } else { "" }
+        if r.refined.unrefined {
+            " (UNREFINED: no DLT point)"
+        } else if r.refined.no_chunk_fallback {
+            " (no chunk accepted: aligned feed-forward points)"
+        } else {
+            ""
+        }
     );
     print_stages(&r.stages);
     println!("outputs in {}:", r.out_dir.display());
-    for f in r.export.files.iter().map(String::as_str).chain(["refined.safetensors", "config.json", "meta.json"]) {
+    for f in r.export.files.iter().map(String::as_str).chain([
+        "refined.safetensors",
+        "config.json",
+        "meta.json",
+    ]) {
         println!("  {}", r.out_dir.join(f).display());
     }
     if r.evaluation.is_some() {
         println!("  {}", r.out_dir.join("evaluation.json").display());
-        println!("  {}/view_*.png (image | feed-forward error | refined error)", r.out_dir.join("error_maps").display());
+        println!(
+            "  {}/view_*.png (image | feed-forward error | refined error)",
+            r.out_dir.join("error_maps").display()
+        );
     }
 }
 
 fn run_run(args: RunArgs) -> Result<()> {
-    configure_threads(args.common.threads)?;
-    let mut opts = run_options(&args.common, args.seed.unwrap_or(ggpt_scene::driver::DEFAULT_SEED), args.seed)?;
+    configure_threads(args.common.device.threads)?;
+    let mut opts = run_options(
+        &args.common,
+        args.seed.unwrap_or(ggpt_scene::driver::DEFAULT_SEED),
+        args.seed,
+    )?;
     let mut log = StageLog::new();
     log.start("load model");
-    let spec = resolve_model(&args.weights, args.model_config.as_deref(), args.preset.as_deref())?;
-    let chunking = resolve_chunking(&opts.refine.chunking, spec.chunking_layer(), &args.common.chunking(), chunking_flag)?;
+    let model_args = args.model.normalized();
+    let spec = resolve_model(
+        model_args.require_weights()?,
+        model_args.model_config.as_deref(),
+        model_args.preset_name(),
+    )?;
+    let chunking = resolve_chunking(
+        &opts.refine.chunking,
+        spec.chunking_layer(),
+        &args.common.chunking.settings(),
+        ChunkingArgs::flag,
+    )?;
     info!("chunk sampler: {}", chunking.describe());
     opts.refine.chunking = chunking.params.clone();
-    let device = device_from_name(&args.common.device)?;
-    let model = load_model(&spec, &device).with_context(|| format!("loading weights {}", spec.weights.display()))?;
+    let device = device_from_name(&args.common.device.device.to_string())?;
+    let model = load_model(&spec, &device)
+        .with_context(|| format!("loading weights {}", spec.weights.display()))?;
     let mut refiner = BurnRefiner::new(model, spec.config.clone(), device)?.with_rss_stages(true);
     log.start("load scene");
     let mut scene = load_scene(&args.scene)?;
     log.finish();
-    info!("scene {} ({} views, {}x{})", scene.name, scene.dims.n, scene.dims.w, scene.dims.h);
+    info!(
+        "scene {} ({} views, {}x{})",
+        scene.name, scene.dims.n, scene.dims.w, scene.dims.h
+    );
     let config = serde_json::json!({
         "command": "run",
         "scene": args.scene,
@@ -356,6 +367,8 @@ fn run_run(args: RunArgs) -> Result<()> {
         "model_config_origin": spec.origin,
         "model_config": spec.config,
         "device": args.common.device,
+        "fusion": args.common.fusion,
+        "colmap_points": args.common.colmap_points,
         "chunking": chunking,
         "refine": opts.refine,
         "export": opts.export,
@@ -365,12 +378,23 @@ fn run_run(args: RunArgs) -> Result<()> {
     });
     let meta = serde_json::json!({
         "ggpt_infer_version": env!("CARGO_PKG_VERSION"),
-        "backend": args.common.device,
+        "backend": args.common.device.device,
         "dtype": "f32",
         "seed": opts.refine.seed,
     });
-    let report = run_scene(&mut scene, &mut refiner, &opts, &args.out, &config, meta, &mut log)
-        .with_context(|| format!("refining scene {}", args.scene.display()))?;
+    let mut bars = StageBars::new();
+    let report = run_scene(
+        &mut scene,
+        &mut refiner,
+        &opts,
+        &args.out,
+        &config,
+        meta,
+        &mut log,
+        &mut |p| bars.report(p),
+    )
+    .with_context(|| format!("refining scene {}", args.scene.display()))?;
+    bars.finish();
     print_report(&report);
     Ok(())
 }
@@ -379,47 +403,63 @@ fn load_scene(dir: &Path) -> Result<ggpt_core::Scene> {
     if !dir.is_dir() {
         bail!("scene directory not found: {}", dir.display());
     }
-    ggpt_core::io::scene_dir::read_scene(dir).with_context(|| format!("reading scene {}", dir.display()))
+    ggpt_core::io::scene_dir::read_scene(dir)
+        .with_context(|| format!("reading scene {}", dir.display()))
 }
 
 fn run_demo_cmd(args: DemoArgs) -> Result<()> {
-    configure_threads(args.common.threads)?;
+    configure_threads(args.common.device.threads)?;
+    let model = args.model.normalized();
     let opts = DemoOptions {
         views: args.views,
         seed: args.seed,
-        kind: if args.kind == "object" { ggpt_synth::SceneKind::Object } else { ggpt_synth::SceneKind::Room },
+        kind: ggpt_synth::SceneKind::parse(args.kind.name())?,
         width: args.width,
         height: args.height,
         out: args.out.clone(),
-        weights: args.weights.clone(),
-        model_config: args.model_config.clone(),
-        preset: args.preset.clone(),
-        device: args.common.device.clone(),
+        weights: model.weights.clone(),
+        model_config: model.model_config.clone(),
+        preset: model.preset_name().map(String::from),
+        device: args.common.device.device.to_string(),
         chunking: {
-            let flags = args.common.chunking();
-            flags.validate(chunking_flag).map_err(anyhow::Error::msg)?;
+            let flags = args.common.chunking.settings();
+            flags
+                .validate(ChunkingArgs::flag)
+                .map_err(anyhow::Error::msg)?;
             flags
         },
         run: run_options(&args.common, args.seed, None)?,
     };
     let mut log = StageLog::new();
-    let report = run_demo(&opts, &mut log)?;
-    println!("GGPT demo: synthetic {} scene, {} views at {}x{}, model {}", args.kind, args.views, args.width, args.height, report.weights.display());
+    let mut bars = StageBars::new();
+    let report = run_demo(&opts, &mut log, &mut |p| bars.report(p))?;
+    bars.finish();
+    println!(
+        "GGPT demo: synthetic {} scene, {} views at {}x{}, model {}",
+        args.kind.name(),
+        args.views,
+        args.width,
+        args.height,
+        report.weights.display()
+    );
     print_report(&report.run);
-    println!("  {} (the generated scene; rerun: ggpt-infer run --scene {} --weights {} --out DIR)", report.scene_dir.display(), report.scene_dir.display(), report.weights.display());
+    println!(
+        "  {} (the generated scene; rerun: ggpt-infer run --scene {} --weights {} --out DIR)",
+        report.scene_dir.display(),
+        report.scene_dir.display(),
+        report.weights.display()
+    );
     Ok(())
 }
 
 fn main() -> Result<()> {
     ggpt_model::device::tune_allocator();
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .init();
     let cli = Cli::parse();
+    ggpt_cli::init_logging(match &cli.command {
+        Command::Run(a) => a.common.progress.bars(),
+        Command::Demo(a) => a.common.progress.bars(),
+        Command::Chunk(_) => true,
+    });
     match cli.command {
         Command::Chunk(args) => run_chunk(args),
         Command::Run(args) => run_run(args),
@@ -428,33 +468,48 @@ fn main() -> Result<()> {
 }
 
 fn run_chunk(args: ChunkArgs) -> Result<()> {
-    configure_threads(args.threads)?;
-    let cfg = match (&args.model_config, &args.preset) {
+    configure_threads(args.device.threads)?;
+    let model_args = args.model.normalized();
+    let cfg = match (&model_args.model_config, model_args.preset_name()) {
         (Some(path), _) => GgptConfig::from_json_file(path)?,
         (None, Some(name)) => GgptConfig::preset(name)?,
         (None, None) => bail!("give --model-config FILE or --preset released|small|tiny"),
     };
-    let device = device_from_name(&args.device)?;
+    let weights = model_args.require_weights()?;
+    let device = device_from_name(&args.device.device.to_string())?;
     let t0 = Instant::now();
-    let model = load_checkpoint(Ggpt::new(&cfg, &device), &args.weights)
-        .with_context(|| format!("loading weights {}", args.weights.display()))?;
-    info!("loaded {} in {:.2} s", args.weights.display(), t0.elapsed().as_secs_f64());
-    let chunks = read_chunk_inputs(&args.input).with_context(|| format!("reading {}", args.input.display()))?;
+    let model = load_checkpoint(Ggpt::new(&cfg, &device), weights)
+        .with_context(|| format!("loading weights {}", weights.display()))?;
+    info!(
+        "loaded {} in {:.2} s",
+        weights.display(),
+        t0.elapsed().as_secs_f64()
+    );
+    let chunks = read_chunk_inputs(&args.input)
+        .with_context(|| format!("reading {}", args.input.display()))?;
     info!("{} chunk(s) from {}", chunks.len(), args.input.display());
     let mut outputs = Vec::with_capacity(chunks.len());
-    let groups: Vec<&[ggpt_model::plan::ChunkInput]> =
-        if args.batched { vec![&chunks[..]] } else { chunks.chunks(1).collect() };
+    let groups: Vec<&[ggpt_model::plan::ChunkInput]> = if args.batched {
+        vec![&chunks[..]]
+    } else {
+        chunks.chunks(1).collect()
+    };
     let mut first = 0;
     for group in groups {
         let t = Instant::now();
-        let batch = prepare_chunks(&cfg, group, &device).with_context(|| format!("planning chunk {first}"))?;
+        let batch = prepare_chunks(&cfg, group, &device)
+            .with_context(|| format!("planning chunk {first}"))?;
         let t_plan = t.elapsed().as_secs_f64();
         let out = model.forward(&batch).to_chunks(&batch)?;
         let total = t.elapsed().as_secs_f64();
         let tokens: usize = batch.num_tokens;
         eprintln!(
             "chunk {first}{}: {tokens} tokens, plan {t_plan:.3} s, total {total:.3} s",
-            if group.len() > 1 { format!("..{}", first + group.len() - 1) } else { String::new() }
+            if group.len() > 1 {
+                format!("..{}", first + group.len() - 1)
+            } else {
+                String::new()
+            }
         );
         first += group.len();
         outputs.extend(out);

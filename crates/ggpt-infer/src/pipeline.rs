@@ -7,29 +7,23 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use ggpt_core::io::st::StWriter;
-use ggpt_core::{Scene, SfmResult};
-use ggpt_scene::ChunkRefiner;
-use ggpt_scene::driver::{Progress, RefineOptions, RefinedScene, refine_scene_with_progress};
-use ggpt_core::io::atomic::write_json_atomic;
-use ggpt_scene::export::{ExportOptions, ExportSummary, export_scene};
+use ggpt_core::{Progress, Scene, SfmResult};
+use ggpt_scene::driver::{RefineOptions, RefinedScene, refine_scene_with_progress};
+use ggpt_scene::export::{ExportOptions, ExportSummary, RunOutput};
+use ggpt_scene::{ChunkRefiner, SceneError};
 use ggpt_sfm::ba::CameraModel;
 use ggpt_sfm::masks::Preset;
-use ggpt_sfm::pipeline::{SfmConfig, SfmSummary, run_sfm};
-use indicatif::{ProgressBar, ProgressStyle};
+use ggpt_sfm::pipeline::{SfmConfig, SfmSummary, run_sfm_with_progress};
 
 use crate::error_maps::{DEFAULT_ERROR_MAP_MAX_CM, write_error_maps};
-use ggpt_eval::refinement::{SceneEvaluation, evaluate_refinement};
 use crate::refiner::{BurnRefiner, RefinerStats};
 use crate::rss::{StageLog, StageTiming, mib, peak_rss_bytes, reset_peak_rss};
 use crate::{InferError, Result};
+use ggpt_eval::refinement::{SceneEvaluation, evaluate_refinement};
 
-/// Refined arrays in safetensors (`refined.safetensors`).
-pub const REFINED_SAFETENSORS: &str = "refined.safetensors";
-/// Evaluation report (`evaluation.json`), written when the scene has ground truth.
-pub const EVALUATION_JSON: &str = "evaluation.json";
-/// Folder of the per-view error maps.
-pub const ERROR_MAP_DIR: &str = "error_maps";
+/// File names of the output folder (owned by its writer, [`RunOutput`]): `refined.safetensors`,
+/// `evaluation.json` (written when the scene has ground truth), the error-map folder.
+pub use ggpt_scene::export::{ERROR_MAP_DIR, EVALUATION_JSON, REFINED_SAFETENSORS};
 
 /// A [`ChunkRefiner`] that reports what it did (the network stage of the timing table).
 pub trait MeasuredRefiner: ChunkRefiner {
@@ -58,8 +52,6 @@ pub struct RunOptions {
     pub error_maps: bool,
     /// Upper end of the error-map colour scale (cm).
     pub error_map_max_cm: f64,
-    /// Progress bars on stderr.
-    pub progress: bool,
 }
 
 impl Default for RunOptions {
@@ -71,7 +63,6 @@ impl Default for RunOptions {
             evaluate: true,
             error_maps: true,
             error_map_max_cm: DEFAULT_ERROR_MAP_MAX_CM,
-            progress: false,
         }
     }
 }
@@ -98,12 +89,20 @@ pub struct RunReport {
 }
 
 /// Runs the SfM stage (`sfm.md`) when the scene has feed-forward outputs and matches but no SfM
-/// result; returns its summary (`None` when the scene already had an SfM result).
-pub fn ensure_sfm(scene: &mut Scene, preset: Preset, seed: u64, progress: bool) -> Result<Option<SfmSummary>> {
+/// result; returns its summary (`None` when the scene already had an SfM result). `progress`
+/// receives the SfM stage's reports (`ggpt_sfm::pipeline::PROGRESS_STAGE`).
+pub fn ensure_sfm(
+    scene: &mut Scene,
+    preset: Preset,
+    seed: u64,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<Option<SfmSummary>> {
     if scene.sfm.is_some() {
         return Ok(None);
     }
-    let ff = scene.ff.as_ref().ok_or_else(|| InferError::Invalid(format!("scene {}: no feed-forward prediction", scene.name)))?;
+    let ff = scene.ff.as_ref().ok_or_else(|| {
+        InferError::Invalid(format!("scene {}: no feed-forward prediction", scene.name))
+    })?;
     if scene.matches.is_empty() {
         return Err(InferError::Invalid(format!(
             "scene {}: neither an SfM result nor dense matches: cannot run the SfM stage (give a scene with sfm_dlt_outputs / sfm.npz, or with matches/)",
@@ -112,52 +111,47 @@ pub fn ensure_sfm(scene: &mut Scene, preset: Preset, seed: u64, progress: bool) 
     }
     let mut cfg = SfmConfig::preset(preset);
     cfg.seed = seed;
-    cfg.progress = progress;
-    let out = run_sfm(ff, &scene.images, scene.dims, &scene.matches, &cfg)?;
+    let out = run_sfm_with_progress(
+        ff,
+        &scene.images,
+        scene.dims,
+        &scene.matches,
+        &cfg,
+        progress,
+    )?;
     let dlt = out.result.mask.iter().filter(|&&m| m).count();
     tracing::info!(
         "SfM ({:?} preset): BA {} ({} tracks), {dlt} DLT pixels",
         preset,
-        if out.result.camera_success { "succeeded" } else { "failed (feed-forward cameras kept)" },
+        if out.result.camera_success {
+            "succeeded"
+        } else {
+            "failed (feed-forward cameras kept)"
+        },
         out.summary.tracks_selected
     );
     scene.sfm = Some(out.result);
     Ok(Some(out.summary))
 }
 
-fn progress_bar(on: bool) -> ProgressBar {
-    if !on {
-        return ProgressBar::hidden();
+/// A failure to create the output folder, as [`InferError::Write`] naming it.
+fn output_dir_error(out: &Path, e: SceneError) -> InferError {
+    match e {
+        SceneError::Core(ggpt_core::CoreError::Io { source, .. }) => InferError::Write {
+            path: out.to_path_buf(),
+            message: source.to_string(),
+        },
+        other => other.into(),
     }
-    let bar = ProgressBar::new(0);
-    if let Ok(style) = ProgressStyle::with_template("refine {bar:30} {pos}/{len} chunks [{elapsed_precise} < {eta_precise}]") {
-        bar.set_style(style);
-    }
-    bar
-}
-
-/// Writes `refined.safetensors`: `points` f32 `[N,h,w,3]` (SfM frame), `confidence` f32
-/// `[N,h,w]`, `covered` bool `[N,h,w]`, `aligned_ff_points` f32 `[N,h,w,3]` (the pre-aligned
-/// feed-forward points, SfM frame), `cam_from_world` f64 `[N,3,4]`, `K` f64 `[N,3,3]` (SfM
-/// cameras, ff pixels, pixel-centre convention).
-pub fn write_refined_safetensors(path: &Path, refined: &RefinedScene, sfm: &SfmResult) -> Result<()> {
-    let d = refined.dims;
-    let mut w = StWriter::new();
-    w.f32("points", &[d.n, d.h, d.w, 3], &refined.points);
-    w.f32("confidence", &[d.n, d.h, d.w], &refined.conf);
-    w.bool("covered", &[d.n, d.h, d.w], &refined.covered);
-    w.f32("aligned_ff_points", &[d.n, d.h, d.w, 3], &refined.aligned_ff);
-    w.extrinsics("cam_from_world", &sfm.cameras.cam_from_world);
-    w.intrinsics("K", &sfm.cameras.intrinsics);
-    let meta = [("frame", "sfm"), ("format", "ggpt-rs refined point map")].map(|(k, v)| (k.to_string(), v.to_string()));
-    let bytes = w.finish(path, Some(meta.into_iter().collect()))?;
-    ggpt_core::io::atomic::write_bytes_atomic(path, &bytes)?;
-    Ok(())
 }
 
 /// Runs everything after the scene is loaded: SfM if needed, refinement, export into `out`,
-/// evaluation and error maps when the scene has GT. `config` is written as `config.json`;
-/// `meta` is extended with counts, stage timings and summaries and written as `meta.json`.
+/// evaluation and error maps when the scene has GT. Every file goes through one [`RunOutput`]:
+/// `config` is written as `config.json`; `meta` is extended with counts, stage timings and
+/// summaries and written as `meta.json`, once, when the run is complete.
+/// `progress` receives the reports of the SfM stage (when it runs) and of the refinement
+/// (stage `ggpt_scene::driver::PROGRESS_STAGE`, one unit per chunk).
+#[allow(clippy::too_many_arguments)]
 pub fn run_scene(
     scene: &mut Scene,
     refiner: &mut dyn MeasuredRefiner,
@@ -166,26 +160,22 @@ pub fn run_scene(
     config: &serde_json::Value,
     meta: serde_json::Value,
     log: &mut StageLog,
+    progress: &mut dyn FnMut(Progress),
 ) -> Result<RunReport> {
-    std::fs::create_dir_all(out).map_err(|e| InferError::Write { path: out.to_path_buf(), message: e.to_string() })?;
+    let mut output = RunOutput::create(out).map_err(|e| output_dir_error(out, e))?;
     log.start("sfm");
-    let sfm_summary = ensure_sfm(scene, opts.sfm_preset, opts.refine.seed, opts.progress)?;
+    let sfm_summary = ensure_sfm(scene, opts.sfm_preset, opts.refine.seed, progress)?;
     log.finish();
-    let sfm = scene.sfm.clone().ok_or_else(|| InferError::Invalid("no SfM result".into()))?;
+    let sfm = scene
+        .sfm
+        .clone()
+        .ok_or_else(|| InferError::Invalid("no SfM result".into()))?;
 
     // Refinement: prealign + chunking | network | records + un-normalise + fusion.
     let _ = refiner.take_stats();
     reset_peak_rss();
-    let bar = progress_bar(opts.progress);
     let t0 = Instant::now();
-    let refined = {
-        let mut on_progress = |p: Progress| {
-            bar.set_length(p.total as u64);
-            bar.set_position(p.done as u64);
-        };
-        refine_scene_with_progress(scene, &sfm, refiner, &opts.refine, &mut on_progress)?
-    };
-    bar.finish_and_clear();
+    let refined = refine_scene_with_progress(scene, &sfm, refiner, &opts.refine, progress)?;
     let total = t0.elapsed().as_secs_f64();
     let stats = refiner.take_stats();
     let peak_after = peak_rss_bytes().map(mib);
@@ -193,9 +183,17 @@ pub fn run_scene(
         Some(first) => {
             let chunking = first.duration_since(t0).as_secs_f64();
             let network = stats.network_seconds();
-            log.push("prealign+chunking", chunking, stats.peak_rss_before_first_forward.map(mib).or(peak_after));
+            log.push(
+                "prealign+chunking",
+                chunking,
+                stats.peak_rss_before_first_forward.map(mib).or(peak_after),
+            );
             log.push("network", network, peak_after);
-            log.push("records+fusion", (total - chunking - network).max(0.0), peak_after);
+            log.push(
+                "records+fusion",
+                (total - chunking - network).max(0.0),
+                peak_after,
+            );
         }
         None => {
             log.push("prealign+chunking", total, peak_after);
@@ -218,25 +216,29 @@ pub fn run_scene(
         let k = &sfm.cameras.intrinsics;
         c.shared_camera = k.windows(2).all(|w| w[0] == w[1]);
         if sfm_summary.is_some() {
-            c.simple_pinhole = SfmConfig::preset(opts.sfm_preset).camera_model == CameraModel::SimplePinhole;
+            c.simple_pinhole =
+                SfmConfig::preset(opts.sfm_preset).camera_model == CameraModel::SimplePinhole;
         }
     }
-    let summary = export_scene(out, scene, &sfm, &refined, &export_opts, config, &meta)?;
-    write_refined_safetensors(&out.join(REFINED_SAFETENSORS), &refined, &sfm)?;
+    let summary = output.export(scene, &sfm, &refined, &export_opts)?;
+    output.write_config(config)?;
+    output.write_refined(&refined, &sfm)?;
     log.finish();
 
     let mut evaluation = None;
-    let mut files = summary.files.clone();
-    files.push(REFINED_SAFETENSORS.into());
     if opts.evaluate && scene.gt.is_some() {
         log.start("evaluation");
         let detail = evaluate_refinement(scene, &sfm, &refined.points, opts.refine.seed)?;
-        write_json_atomic(&out.join(EVALUATION_JSON), &detail.summary)?;
-        files.push(EVALUATION_JSON.into());
+        output.write_evaluation(&detail.summary)?;
         if opts.error_maps {
-            let dir = out.join(ERROR_MAP_DIR);
-            write_error_maps(&dir, scene.dims, &scene.images, &detail.ff, &detail.refined, opts.error_map_max_cm)?;
-            files.push(format!("{ERROR_MAP_DIR}/view_*.png"));
+            write_error_maps(
+                &mut output,
+                scene.dims,
+                &scene.images,
+                &detail.ff,
+                &detail.refined,
+                opts.error_map_max_cm,
+            )?;
         }
         log.finish();
         evaluation = Some(detail.summary);
@@ -253,12 +255,21 @@ pub fn run_scene(
         m.insert("sfm_ran".into(), sfm_summary.is_some().into());
         m.insert("sfm".into(), v(serde_json::to_value(&sfm_summary)));
         m.insert("export".into(), v(serde_json::to_value(&summary)));
-        m.insert("files".into(), v(serde_json::to_value(&files)));
+        m.insert("files".into(), v(serde_json::to_value(output.files())));
         if let Some(e) = &evaluation {
             let auc = |p: &ggpt_core::metrics::PointMetrics| serde_json::json!({"auc_1": p.auc_1, "auc_3": p.auc_3, "auc_5": p.auc_5, "auc_10": p.auc_10});
             m.insert("evaluation".into(), serde_json::json!({"ff": auc(&e.ff), "refined": auc(&e.refined), "sfm": e.sfm.as_ref().map(auc)}));
         }
     }
-    write_json_atomic(&out.join("meta.json"), &meta)?;
-    Ok(RunReport { out_dir: out.to_path_buf(), refined, sfm, sfm_summary, export: summary, evaluation, network: stats, stages })
+    output.finish(&meta)?;
+    Ok(RunReport {
+        out_dir: out.to_path_buf(),
+        refined,
+        sfm,
+        sfm_summary,
+        export: summary,
+        evaluation,
+        network: stats,
+        stages,
+    })
 }

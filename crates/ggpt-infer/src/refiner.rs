@@ -14,7 +14,6 @@ use std::time::{Duration, Instant};
 
 use burn::tensor::Device;
 use ggpt_model::infer::prepare_chunks;
-use ggpt_model::plan::ChunkInput;
 use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_scene::driver::RefinedChunk;
 use ggpt_scene::{ChunkRecord, ChunkRefiner, SceneError};
@@ -68,10 +67,17 @@ impl BurnRefiner {
     pub fn new(model: Ggpt, cfg: GgptConfig, device: Device) -> crate::Result<Self> {
         if device.is_autodiff() {
             return Err(crate::InferError::Invalid(
-                "the refiner needs a plain (non-autodiff) device: inference runs in eval mode".into(),
+                "the refiner needs a plain (non-autodiff) device: inference runs in eval mode"
+                    .into(),
             ));
         }
-        Ok(BurnRefiner { model, cfg, device, stats: RefinerStats::default(), measure_rss: false })
+        Ok(BurnRefiner {
+            model,
+            cfg,
+            device,
+            stats: RefinerStats::default(),
+            measure_rss: false,
+        })
     }
 
     /// Resets the process's peak resident memory at the first forward, so that
@@ -98,12 +104,6 @@ impl BurnRefiner {
     }
 }
 
-/// The network's view of a chunk record (`network.md` §2): normalised dense points, raw
-/// confidence, normalised DLT points and their mask.
-pub fn chunk_input(rec: &ChunkRecord) -> ChunkInput {
-    ChunkInput { ff_pts: rec.ff_pts.clone(), ff_conf: rec.ff_conf.clone(), geo_pts: rec.geo_pts.clone(), geo_msk: rec.geo_msk.clone() }
-}
-
 impl ChunkRefiner for BurnRefiner {
     fn refine(&mut self, chunks: &[ChunkRecord]) -> Result<Vec<RefinedChunk>, SceneError> {
         if chunks.is_empty() {
@@ -118,16 +118,20 @@ impl ChunkRefiner for BurnRefiner {
         }
         let first = chunks.first().map_or(0, |c| c.index);
         let t0 = Instant::now();
-        let inputs: Vec<ChunkInput> = chunks.iter().map(chunk_input).collect();
-        let batch = prepare_chunks(&self.cfg, &inputs, &self.device)
-            .map_err(|e| SceneError::Refiner(format!("planning chunks {first}..{}: {e}", first + chunks.len())))?;
-        drop(inputs);
+        // The records lend their network input to the planner (no copy of the arrays).
+        let batch = prepare_chunks(&self.cfg, chunks, &self.device).map_err(|e| {
+            SceneError::Refiner(format!(
+                "planning chunks {first}..{}: {e}",
+                first + chunks.len()
+            ))
+        })?;
         let t1 = Instant::now();
-        let out = self
-            .model
-            .forward(&batch)
-            .to_chunks(&batch)
-            .map_err(|e| SceneError::Refiner(format!("forward of chunks {first}..{}: {e}", first + chunks.len())))?;
+        let out = self.model.forward(&batch).to_chunks(&batch).map_err(|e| {
+            SceneError::Refiner(format!(
+                "forward of chunks {first}..{}: {e}",
+                first + chunks.len()
+            ))
+        })?;
         let t2 = Instant::now();
         let tokens = batch.num_tokens;
         drop(batch);
@@ -146,10 +150,22 @@ impl ChunkRefiner for BurnRefiner {
         );
         let mut results = Vec::with_capacity(out.len());
         for (rec, o) in chunks.iter().zip(out) {
-            if let Some(i) = o.ff_pts_out.iter().flatten().chain(&o.ff_pts_conf_out).position(|v| !v.is_finite()) {
-                return Err(SceneError::Refiner(format!("chunk {}: the network produced a non-finite output (value {i})", rec.index)));
+            if let Some(i) = o
+                .ff_pts_out
+                .iter()
+                .flatten()
+                .chain(&o.ff_pts_conf_out)
+                .position(|v| !v.is_finite())
+            {
+                return Err(SceneError::Refiner(format!(
+                    "chunk {}: the network produced a non-finite output (value {i})",
+                    rec.index
+                )));
             }
-            results.push(RefinedChunk { points: o.ff_pts_out, conf: o.ff_pts_conf_out });
+            results.push(RefinedChunk {
+                points: o.ff_pts_out,
+                conf: o.ff_pts_conf_out,
+            });
         }
         Ok(results)
     }

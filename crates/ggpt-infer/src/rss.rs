@@ -24,7 +24,12 @@ pub fn reset_peak_rss() {
 fn status_kb(key: &str) -> Option<u64> {
     let text = std::fs::read_to_string("/proc/self/status").ok()?;
     let line = text.lines().find(|l| l.starts_with(key))?;
-    line.trim_start_matches(key).trim().trim_end_matches("kB").trim().parse().ok()
+    line.trim_start_matches(key)
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse()
+        .ok()
 }
 
 /// One timed stage.
@@ -59,7 +64,10 @@ pub fn mib(bytes: u64) -> f64 {
 impl StageLog {
     /// Empty log.
     pub fn new() -> Self {
-        StageLog { stages: Vec::new(), current: None }
+        StageLog {
+            stages: Vec::new(),
+            current: None,
+        }
     }
 
     /// Starts `name` (ending the current stage, if any).
@@ -83,7 +91,11 @@ impl StageLog {
             Some(m) => tracing::info!("stage {name}: {seconds:.3} s, peak RSS {m:.0} MiB"),
             None => tracing::info!("stage {name}: {seconds:.3} s"),
         }
-        self.stages.push(StageTiming { stage: name.to_string(), seconds, peak_rss_mib });
+        self.stages.push(StageTiming {
+            stage: name.to_string(),
+            seconds,
+            peak_rss_mib,
+        });
     }
 
     /// The recorded stages, in order.

@@ -1,6 +1,7 @@
 //! `ggpt-infer run` on bad inputs, through the command line: every case stops with a non-zero
 //! exit and a message naming the file / the problem (no panic), and the empty-guidance scene
 //! follows its documented behaviour (error, or the unrefined points with `--allow-unrefined`).
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
 
@@ -22,7 +23,11 @@ fn fixture() -> Fixture {
     let dir = tempfile::tempdir().expect("tempdir");
     let weights = dir.path().join("tiny.bpk");
     common::save_tiny_weights(&weights);
-    Fixture { dir, weights, scene: common::tiny_scene(5) }
+    Fixture {
+        dir,
+        weights,
+        scene: common::tiny_scene(5),
+    }
 }
 
 fn run(scene: &Path, weights: &Path, out: &Path, extra: &[&str]) -> Output {
@@ -31,7 +36,15 @@ fn run(scene: &Path, weights: &Path, out: &Path, extra: &[&str]) -> Output {
         .arg(scene)
         .arg("--weights")
         .arg(weights)
-        .args(["--preset", "tiny", "--device", "ndarray", "--quiet", "--no-error-maps", "--out"])
+        .args([
+            "--preset",
+            "tiny",
+            "--device",
+            "ndarray",
+            "--quiet",
+            "--no-error-maps",
+            "--out",
+        ])
         .arg(out)
         .args(extra)
         .env("NO_COLOR", "1")
@@ -42,8 +55,14 @@ fn run(scene: &Path, weights: &Path, out: &Path, extra: &[&str]) -> Output {
 /// Fails with a message containing every one of `needles`, without a panic.
 fn assert_fails_with(o: &Output, needles: &[&str]) -> String {
     let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert!(!o.status.success(), "expected a failure, got success: {stderr}");
-    assert!(!stderr.contains("panicked"), "panic instead of an error: {stderr}");
+    assert!(
+        !o.status.success(),
+        "expected a failure, got success: {stderr}"
+    );
+    assert!(
+        !stderr.contains("panicked"),
+        "panic instead of an error: {stderr}"
+    );
     for n in needles {
         assert!(stderr.contains(n), "message lacks {n:?}: {stderr}");
     }
@@ -56,8 +75,16 @@ fn sfm_on_ff(scene: &Scene, every: usize) -> SfmResult {
     let ff = scene.ff.as_ref().unwrap();
     let n_pix = scene.dims.n * scene.dims.hw();
     let mask: Vec<bool> = (0..n_pix).map(|i| every > 0 && i % every == 0).collect();
-    let points = (0..3 * n_pix).map(|j| if mask[j / 3] { ff.points[j] } else { 0.0 }).collect();
-    SfmResult { points, mask, cameras: ff.cameras.clone(), camera_success: true, points_success: every > 0 }
+    let points = (0..3 * n_pix)
+        .map(|j| if mask[j / 3] { ff.points[j] } else { 0.0 })
+        .collect();
+    SfmResult {
+        points,
+        mask,
+        cameras: ff.cameras.clone(),
+        camera_success: true,
+        points_success: every > 0,
+    }
 }
 
 /// A §5.1 folder of `scene` (feed-forward, SfM when present, matches when present).
@@ -75,7 +102,10 @@ fn missing_scene_and_missing_weights_are_named() {
     assert_fails_with(&run(&nowhere, &f.weights, &out, &[]), &["no-such-scene"]);
     let scene = folder(&f, "scene", &f.scene);
     let no_weights = f.dir.path().join("missing.safetensors");
-    assert_fails_with(&run(&scene, &no_weights, &out, &[]), &["weights", "missing.safetensors"]);
+    assert_fails_with(
+        &run(&scene, &no_weights, &out, &[]),
+        &["weights", "missing.safetensors"],
+    );
     assert!(!out.join("refined.safetensors").exists());
 }
 
@@ -86,7 +116,10 @@ fn scene_without_sfm_or_matches_is_rejected() {
     s.matches.clear();
     s.sfm = None;
     let scene = folder(&f, "bare", &s);
-    assert_fails_with(&run(&scene, &f.weights, &f.dir.path().join("out"), &[]), &["bare", "neither sfm.npz / sfm_dlt_outputs.bin nor matches"]);
+    assert_fails_with(
+        &run(&scene, &f.weights, &f.dir.path().join("out"), &[]),
+        &["bare", "neither sfm.npz / sfm_dlt_outputs.bin nor matches"],
+    );
 }
 
 #[test]
@@ -101,7 +134,10 @@ fn nan_feed_forward_points_are_rejected_naming_the_file() {
     *points = NpyArray::new(points.shape.clone(), NpyData::F32(v)).unwrap();
     let list: Vec<(&str, &NpyArray)> = arrays.iter().map(|(k, a)| (k.as_str(), a)).collect();
     write_npz(&npz, &list, false).unwrap();
-    let e = assert_fails_with(&run(&scene, &f.weights, &f.dir.path().join("out"), &[]), &["ff.npz"]);
+    let e = assert_fails_with(
+        &run(&scene, &f.weights, &f.dir.path().join("out"), &[]),
+        &["ff.npz"],
+    );
     assert!(e.contains("NaN") || e.contains("finite"), "{e}");
 }
 
@@ -129,7 +165,10 @@ fn sfm_with_another_view_count_is_rejected() {
     }
     let list: Vec<(&str, &NpyArray)> = arrays.iter().map(|(k, a)| (k.as_str(), a)).collect();
     write_npz(&npz, &list, false).unwrap();
-    assert_fails_with(&run(&scene, &f.weights, &f.dir.path().join("out"), &[]), &["sfm.npz"]);
+    assert_fails_with(
+        &run(&scene, &f.weights, &f.dir.path().join("out"), &[]),
+        &["sfm.npz"],
+    );
 }
 
 /// No DLT point: an error by default; with `--allow-unrefined` the feed-forward points are
@@ -150,7 +189,10 @@ fn empty_guidance_scene_errors_or_passes_through_with_allow_unrefined() {
     let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
     let f32s = |name: &str| -> Vec<f32> {
         let t = st.tensor(name).unwrap();
-        t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+        t.data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect()
     };
     assert_eq!(f32s("points"), ff.points);
     assert!(f32s("confidence").iter().all(|&c| c == 0.0));

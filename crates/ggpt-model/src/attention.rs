@@ -96,11 +96,22 @@ impl WindowAttention {
                 let nw = step.min(group.num_windows - w0);
                 let idx = group.gather.clone().narrow(0, w0 * l, nw * l);
                 // qkv is row-wise: project only the gathered rows (no [N, 3C] buffer).
-                let rows = profile::scope(|| format!("{stage}.attn.qkv"), || self.qkv.forward(gather_rows(x.clone(), idx)));
-                let shape = WindowShape { windows: nw, len: l, heads: h, head_dim: d };
+                let rows = profile::scope(
+                    || format!("{stage}.attn.qkv"),
+                    || self.qkv.forward(gather_rows(x.clone(), idx)),
+                );
+                let shape = WindowShape {
+                    windows: nw,
+                    len: l,
+                    heads: h,
+                    head_dim: d,
+                };
                 let o = profile::scope(
                     || format!("{stage}.attn.core"),
-                    || match host.then(|| host_core(&rows, shape, scale as f32)).flatten() {
+                    || match host
+                        .then(|| host_core(&rows, shape, scale as f32))
+                        .flatten()
+                    {
                         Some(out) => Tensor::from_data(TensorData::new(out, [nw * l, c]), &device),
                         None => tensor_core(rows, shape, scale, host),
                     },
@@ -146,7 +157,8 @@ impl HostAttnIndex {
             groups.push((gather, g.num_windows, g.len));
         }
         let take = read_indices(&index.take)?;
-        (take.len() == num_tokens && take.iter().all(|&r| r < rows)).then_some(Self { groups, take })
+        (take.len() == num_tokens && take.iter().all(|&r| r < rows))
+            .then_some(Self { groups, take })
     }
 }
 
@@ -162,12 +174,20 @@ impl WindowAttention {
     /// `qkv [N, 3C]` row-major (the `qkv` Linear applied to all `N` rows) `-> [N, C]`, the
     /// same function as [`Self::core_profiled`] (whose `qkv` runs on the gathered rows), and
     /// what its backward needs.
-    pub fn host_core_forward(&self, qkv: &[f32], index: &HostAttnIndex) -> Option<(Vec<f32>, HostCoreSaved)> {
+    pub fn host_core_forward(
+        &self,
+        qkv: &[f32],
+        index: &HostAttnIndex,
+    ) -> Option<(Vec<f32>, HostCoreSaved)> {
         let saved = self.host_core_saved(qkv, index)?;
         let c = self.qkv.weight.dims()[1] / 3;
         let mut all = Vec::new();
         for (rows, shape) in &saved.groups {
-            all.extend(window_attention(rows, *shape, attention_scale(shape.head_dim))?);
+            all.extend(window_attention(
+                rows,
+                *shape,
+                attention_scale(shape.head_dim),
+            )?);
         }
         let mut out = Vec::with_capacity(index.take.len() * c);
         for &r in &index.take {
@@ -192,14 +212,27 @@ impl WindowAttention {
             for &t in gather {
                 rows.extend_from_slice(qkv.get(t * c3..(t + 1) * c3)?);
             }
-            groups.push((rows, WindowShape { windows: *windows, len: *len, heads: h, head_dim: d }));
+            groups.push((
+                rows,
+                WindowShape {
+                    windows: *windows,
+                    len: *len,
+                    heads: h,
+                    head_dim: d,
+                },
+            ));
         }
         Some(HostCoreSaved { groups })
     }
 
     /// Gradient of [`Self::host_core_forward`]: `d_out [N, C]` -> `d_qkv [N, 3C]` (the rows of
     /// a token that sits in several window slots, padding included, are summed).
-    pub fn host_core_backward(&self, saved: &HostCoreSaved, d_out: &[f32], index: &HostAttnIndex) -> Option<Vec<f32>> {
+    pub fn host_core_backward(
+        &self,
+        saved: &HostCoreSaved,
+        d_out: &[f32],
+        index: &HostAttnIndex,
+    ) -> Option<Vec<f32>> {
         let n = index.take.len();
         let c3 = self.qkv.weight.dims()[1];
         let c = c3 / 3;
@@ -210,13 +243,20 @@ impl WindowAttention {
         let total: usize = saved.groups.iter().map(|(rows, _)| rows.len() / 3).sum();
         let mut d_rows_out = vec![0.0f32; total];
         for (t, &r) in index.take.iter().enumerate() {
-            d_rows_out.get_mut(r * c..(r + 1) * c)?.copy_from_slice(&d_out[t * c..(t + 1) * c]);
+            d_rows_out
+                .get_mut(r * c..(r + 1) * c)?
+                .copy_from_slice(&d_out[t * c..(t + 1) * c]);
         }
         let mut d_qkv = vec![0.0f32; n * c3];
         let mut offset = 0;
         for ((rows, shape), (gather, _, _)) in saved.groups.iter().zip(&index.groups) {
             let m = rows.len() / 3;
-            let d_rows = window_attention_backward(rows, d_rows_out.get(offset..offset + m)?, *shape, attention_scale(shape.head_dim))?;
+            let d_rows = window_attention_backward(
+                rows,
+                d_rows_out.get(offset..offset + m)?,
+                *shape,
+                attention_scale(shape.head_dim),
+            )?;
             offset += m;
             for (&t, g) in gather.iter().zip(d_rows.chunks_exact(c3)) {
                 for (acc, x) in d_qkv[t * c3..(t + 1) * c3].iter_mut().zip(g) {
@@ -245,13 +285,22 @@ fn host_core(rows: &Tensor<2>, shape: WindowShape, scale: f32) -> Option<Vec<f32
 /// `module::attention` (no score tensor, not differentiated here), otherwise the explicit
 /// `softmax(q k^T s) v` that autodiff differentiates.
 fn tensor_core(rows: Tensor<2>, shape: WindowShape, scale: f64, fused: bool) -> Tensor<2> {
-    let WindowShape { windows: nw, len: l, heads: h, head_dim: d } = shape;
+    let WindowShape {
+        windows: nw,
+        len: l,
+        heads: h,
+        head_dim: d,
+    } = shape;
     // [3, W, H, L, d]: one permutation, then q, k, v are views.
     let qkv = rows.reshape([nw, l, 3, h, d]).permute([2, 0, 3, 1, 4]);
     let part = |i: usize| qkv.clone().narrow(0, i, 1).reshape([nw, h, l, d]);
     let (q, k, v) = (part(0), part(1), part(2));
     let o = if fused {
-        let opts = AttentionModuleOptions { scale: Some(scale), softcap: None, is_causal: false };
+        let opts = AttentionModuleOptions {
+            scale: Some(scale),
+            softcap: None,
+            is_causal: false,
+        };
         attention(q, k, v, None, None, opts)
     } else {
         let scores = q.mul_scalar(scale).matmul(k.swap_dims(2, 3));

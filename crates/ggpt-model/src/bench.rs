@@ -1,5 +1,5 @@
-//! Inputs and measurements shared by the benchmark binaries (`bench_forward`, `ggpt-train`'s
-//! `bench_train`): a deterministic surface-like chunk shaped like the fixture's clouds, and the
+//! Inputs and measurements shared by the bench targets (`forward`, `plan`, `ggpt-train`'s
+//! `train`): a deterministic surface-like chunk shaped like the fixture's clouds, and the
 //! process's peak resident set size.
 
 use crate::plan::ChunkInput;
@@ -20,14 +20,25 @@ pub fn surface_chunk(k: usize, seed: u64) -> ChunkInput {
     let w = ((k as f32) * 4.0 / 3.0).sqrt().ceil() as usize;
     let mut c = ChunkInput::default();
     for i in 0..k {
-        let (u, v) = ((i % w) as f32 / w as f32 * 2.0 - 1.0, (i / w) as f32 / w as f32 * 2.0 - 1.0);
+        let (u, v) = (
+            (i % w) as f32 / w as f32 * 2.0 - 1.0,
+            (i / w) as f32 / w as f32 * 2.0 - 1.0,
+        );
         let z = 0.35 * (2.5 * u).sin() * (1.7 * v).cos() + 0.1 * (7.0 * u * v).sin();
         let p = [0.95 * u + 0.002 * next(), 0.95 * v, z];
         c.ff_pts.push(p);
         c.ff_conf.push(1.0 + 5.0 * next());
         let g = next() < GUIDANCE_FRACTION;
         c.geo_msk.push(g);
-        c.geo_pts.push(if g { [p[0] + 0.003 * (next() - 0.5), p[1] + 0.003 * (next() - 0.5), p[2]] } else { [0.0; 3] });
+        c.geo_pts.push(if g {
+            [
+                p[0] + 0.003 * (next() - 0.5),
+                p[1] + 0.003 * (next() - 0.5),
+                p[2],
+            ]
+        } else {
+            [0.0; 3]
+        });
     }
     c
 }
@@ -44,7 +55,6 @@ pub fn peak_rss_mib() -> f64 {
         })
         .map_or(f64::NAN, |kb| kb / 1024.0)
 }
-
 
 /// Resets the process's peak RSS (`VmHWM`) to the current RSS (Linux: writes `5` to
 /// `/proc/self/clear_refs`); returns false where that is not possible.
@@ -68,7 +78,10 @@ mod tests {
         assert_eq!(a.ff_pts, surface_chunk(2000, 7).ff_pts);
         assert_eq!(a.ff_pts.len(), 2000);
         let g = a.geo_msk.iter().filter(|&&m| m).count() as f32 / 2000.0;
-        assert!((g - GUIDANCE_FRACTION).abs() < 0.05, "guidance fraction {g}");
+        assert!(
+            (g - GUIDANCE_FRACTION).abs() < 0.05,
+            "guidance fraction {g}"
+        );
         assert!(peak_rss_mib() > 0.0);
     }
 }

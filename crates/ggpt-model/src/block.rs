@@ -76,7 +76,14 @@ pub struct Block {
 
 impl Block {
     /// Block `index` of a stage with `channels` / `num_heads`, drop-path rate `drop`.
-    pub fn new(cfg: &GgptConfig, channels: usize, num_heads: usize, index: usize, drop: f64, device: &Device) -> Self {
+    pub fn new(
+        cfg: &GgptConfig,
+        channels: usize,
+        num_heads: usize,
+        index: usize,
+        drop: f64,
+        device: &Device,
+    ) -> Self {
         Self {
             cpe: Cpe {
                 conv: SubmConv3d::new(channels, channels, device),
@@ -99,7 +106,14 @@ impl Block {
     /// `x, x_conv [N, C] -> [N, C]`; records `{name}.{cpe_conv_out,cpe_out,attn_out,mlp_out,out}`.
     /// The composition of [`Self::cpe_part`], [`Self::attn_part`] and [`Self::mlp_part`] (the
     /// recomputation segments of `crate::recompute`).
-    pub fn forward(&self, x: Tensor<2>, x_conv: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> Tensor<2> {
+    pub fn forward(
+        &self,
+        x: Tensor<2>,
+        x_conv: Tensor<2>,
+        level: &PreparedLevel,
+        rec: &mut Recorder,
+        name: &str,
+    ) -> Tensor<2> {
         let x1 = self.cpe_part(x, x_conv, level, rec, name);
         let x2 = self.attn_part(x1, level, rec, name);
         self.mlp_part(x2, rec, name)
@@ -107,17 +121,43 @@ impl Block {
 
     /// `x1 = x + CPE(x_conv)`: `x, x_conv [N, C] -> [N, C]`; records `{name}.cpe_conv_out`,
     /// `{name}.cpe_out`.
-    pub fn cpe_part(&self, x: Tensor<2>, x_conv: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> Tensor<2> {
+    pub fn cpe_part(
+        &self,
+        x: Tensor<2>,
+        x_conv: Tensor<2>,
+        level: &PreparedLevel,
+        rec: &mut Recorder,
+        name: &str,
+    ) -> Tensor<2> {
         self.cpe_part_with_conv(x, x_conv, level, rec, name).0
     }
 
     /// [`Self::cpe_part`], also returning the sparse conv's output `[N, C]`, which
     /// [`Self::cpe_part_backward`] can take instead of recomputing it.
-    pub fn cpe_part_with_conv(&self, x: Tensor<2>, x_conv: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> (Tensor<2>, Tensor<2>) {
+    pub fn cpe_part_with_conv(
+        &self,
+        x: Tensor<2>,
+        x_conv: Tensor<2>,
+        level: &PreparedLevel,
+        rec: &mut Recorder,
+        name: &str,
+    ) -> (Tensor<2>, Tensor<2>) {
         let stage = stage_of(name);
-        let conv = profile::scope(|| format!("{stage}.conv"), || self.cpe.conv.forward(x_conv, &level.conv));
+        let conv = profile::scope(
+            || format!("{stage}.conv"),
+            || self.cpe.conv.forward(x_conv, &level.conv),
+        );
         rec.record(|| format!("{name}.cpe_conv_out"), &conv);
-        let cpe = profile::scope(|| format!("{stage}.cpe_linear_ln"), || layer_norm_forward(&self.cpe.norm, self.ln_eps, self.cpe.linear.forward(conv.clone())));
+        let cpe = profile::scope(
+            || format!("{stage}.cpe_linear_ln"),
+            || {
+                layer_norm_forward(
+                    &self.cpe.norm,
+                    self.ln_eps,
+                    self.cpe.linear.forward(conv.clone()),
+                )
+            },
+        );
         rec.record(|| format!("{name}.cpe_out"), &cpe);
         (x + cpe, conv)
     }
@@ -129,16 +169,31 @@ impl Block {
     /// recomputed. No autodiff graph is built. [`PartGrads::inputs`] holds the gradients of
     /// `x` and `x_conv`. `None` when a host readback fails or the tables are inconsistent: the
     /// caller then differentiates [`Self::cpe_part`] itself.
-    pub fn cpe_part_backward(&self, x_conv: Tensor<2>, conv: Option<Tensor<2>>, g_x1: Tensor<2>, level: &PreparedLevel) -> Option<PartGrads> {
+    pub fn cpe_part_backward(
+        &self,
+        x_conv: Tensor<2>,
+        conv: Option<Tensor<2>>,
+        g_x1: Tensor<2>,
+        level: &PreparedLevel,
+    ) -> Option<PartGrads> {
         let [n, c_in] = x_conv.dims();
         let [c_out, k0, k1, k2, _] = self.cpe.conv.weight.dims();
         let device = x_conv.device();
         let tables = HostConvTables::read(&level.conv)?;
         let y = match conv {
             Some(y) if y.dims() == [n, c_out] => read_values(y)?,
-            _ => read_values(self.cpe.conv.clone().no_grad().forward(x_conv.clone().autodiff(), &level.conv))?,
+            _ => read_values(
+                self.cpe
+                    .conv
+                    .clone()
+                    .no_grad()
+                    .forward(x_conv.clone().autodiff(), &level.conv),
+            )?,
         };
-        let (linear, norm) = (HostLinear::read(&self.cpe.linear)?, HostNorm::read(&self.cpe.norm, self.ln_eps)?);
+        let (linear, norm) = (
+            HostLinear::read(&self.cpe.linear)?,
+            HostNorm::read(&self.cpe.norm, self.ln_eps)?,
+        );
         let g = read_values(g_x1.clone())?;
         // x1 = x + LN(y W + b): back through the LayerNorm and the Linear, then the conv
         let ln = norm.state(&linear.forward(&y));
@@ -147,25 +202,66 @@ impl Block {
         let d_lin = linear.backward(&y, &g_z);
         grads.linear(&self.cpe.linear, &d_lin, &device);
         let weight = read_values(self.cpe.conv.weight.val())?;
-        let d = profile::scope(|| "step.host_conv.backward".to_string(), || subm_conv_backward(&read_values(x_conv)?, &d_lin.input, &weight, c_in, c_out, &tables))?;
-        grads.kernels.push((self.cpe.conv.weight.id, Tensor::from_data(TensorData::new(d.weight, [c_out, k0, k1, k2, c_in]), &device)));
-        grads.vectors.push((self.cpe.conv.bias.id, Tensor::from_data(TensorData::new(d.bias, [c_out]), &device)));
-        grads.inputs = vec![g_x1, Tensor::from_data(TensorData::new(d.input, [n, c_in]), &device)];
+        let d = profile::scope(
+            || "step.host_conv.backward".to_string(),
+            || {
+                subm_conv_backward(
+                    &read_values(x_conv)?,
+                    &d_lin.input,
+                    &weight,
+                    c_in,
+                    c_out,
+                    &tables,
+                )
+            },
+        )?;
+        grads.kernels.push((
+            self.cpe.conv.weight.id,
+            Tensor::from_data(
+                TensorData::new(d.weight, [c_out, k0, k1, k2, c_in]),
+                &device,
+            ),
+        ));
+        grads.vectors.push((
+            self.cpe.conv.bias.id,
+            Tensor::from_data(TensorData::new(d.bias, [c_out]), &device),
+        ));
+        grads.inputs = vec![
+            g_x1,
+            Tensor::from_data(TensorData::new(d.input, [n, c_in]), &device),
+        ];
         Some(grads)
     }
 
     /// `x2 = x1 + DropPath(Attn(LN1(x1)))`: `x1 [N, C] -> [N, C]`; records `{name}.attn_out`.
-    pub fn attn_part(&self, x1: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> Tensor<2> {
+    pub fn attn_part(
+        &self,
+        x1: Tensor<2>,
+        level: &PreparedLevel,
+        rec: &mut Recorder,
+        name: &str,
+    ) -> Tensor<2> {
         self.attn_part_with_core(x1, level, rec, name).0
     }
 
     /// [`Self::attn_part`], also returning the attention before its output projection
     /// `[N, C]` ([`WindowAttention::core_profiled`]), which [`Self::attn_part_backward`] can
     /// take instead of recomputing it.
-    pub fn attn_part_with_core(&self, x1: Tensor<2>, level: &PreparedLevel, rec: &mut Recorder, name: &str) -> (Tensor<2>, Tensor<2>) {
+    pub fn attn_part_with_core(
+        &self,
+        x1: Tensor<2>,
+        level: &PreparedLevel,
+        rec: &mut Recorder,
+        name: &str,
+    ) -> (Tensor<2>, Tensor<2>) {
         let stage = stage_of(name);
-        let normed = profile::scope(|| format!("{stage}.ln1"), || layer_norm_forward(&self.norm1, self.ln_eps, x1.clone()));
-        let core = self.attn.core_profiled(normed, &level.attn[self.order_row], stage);
+        let normed = profile::scope(
+            || format!("{stage}.ln1"),
+            || layer_norm_forward(&self.norm1, self.ln_eps, x1.clone()),
+        );
+        let core = self
+            .attn
+            .core_profiled(normed, &level.attn[self.order_row], stage);
         let attn = self.attn.project(core.clone(), stage);
         rec.record(|| format!("{name}.attn_out"), &attn);
         (x1 + self.drop_path.forward(attn), core)
@@ -183,19 +279,34 @@ impl Block {
     ///
     /// The drop-path mask is drawn once, as by [`Self::attn_part`] (the caller restores the
     /// mask RNG before).
-    pub fn attn_part_backward(&self, x1: Tensor<2>, g_x2: Tensor<2>, level: &PreparedLevel, core: Option<Tensor<2>>) -> Option<PartGrads> {
+    pub fn attn_part_backward(
+        &self,
+        x1: Tensor<2>,
+        g_x2: Tensor<2>,
+        level: &PreparedLevel,
+        core: Option<Tensor<2>>,
+    ) -> Option<PartGrads> {
         let [n, c] = x1.dims();
         let device = x1.device();
         let index = HostAttnIndex::read(&level.attn[self.order_row], n)?;
         let row_scale = self.drop_path_scale(n, &device)?;
-        let (norm, qkv_linear, proj) = (HostNorm::read(&self.norm1, self.ln_eps)?, HostLinear::read(&self.attn.qkv)?, HostLinear::read(&self.attn.proj)?);
+        let (norm, qkv_linear, proj) = (
+            HostNorm::read(&self.norm1, self.ln_eps)?,
+            HostLinear::read(&self.attn.qkv)?,
+            HostLinear::read(&self.attn.proj)?,
+        );
         let g = read_values(g_x2)?;
         // x2 = x1 + s ⊙ proj(core(qkv(LN1(x1))))
         let (ln, u) = norm.forward(&read_values(x1)?);
         let qkv = qkv_linear.forward(&u);
         let (out, saved) = match core {
-            Some(core) if core.dims() == [n, c] => (read_values(core)?, self.attn.host_core_saved(&qkv, &index)?),
-            _ => profile::scope(|| "step.host_attn_core.forward".to_string(), || self.attn.host_core_forward(&qkv, &index))?,
+            Some(core) if core.dims() == [n, c] => {
+                (read_values(core)?, self.attn.host_core_saved(&qkv, &index)?)
+            }
+            _ => profile::scope(
+                || "step.host_attn_core.forward".to_string(),
+                || self.attn.host_core_forward(&qkv, &index),
+            )?,
         };
         drop(qkv);
         let mut g_y = vec![0.0; n * c];
@@ -204,7 +315,10 @@ impl Block {
         let d_proj = proj.backward(&out, &g_y);
         drop((out, g_y));
         grads.linear(&self.attn.proj, &d_proj, &device);
-        let d_qkv = profile::scope(|| "step.host_attn_core.backward".to_string(), || self.attn.host_core_backward(&saved, &d_proj.input, &index))?;
+        let d_qkv = profile::scope(
+            || "step.host_attn_core.backward".to_string(),
+            || self.attn.host_core_backward(&saved, &d_proj.input, &index),
+        )?;
         drop(saved);
         let d_lin = qkv_linear.backward(&u, &d_qkv);
         grads.linear(&self.attn.qkv, &d_lin, &device);
@@ -231,10 +345,18 @@ impl Block {
         let hidden = self.mlp.fc1.weight.dims()[1];
         let mlp = profile::scope(
             || format!("{stage}.ln2_mlp"),
-            || map_row_blocks(x2.clone(), hidden, |rows| self.mlp.forward(layer_norm_forward(&self.norm2, self.ln_eps, rows))),
+            || {
+                map_row_blocks(x2.clone(), hidden, |rows| {
+                    self.mlp
+                        .forward(layer_norm_forward(&self.norm2, self.ln_eps, rows))
+                })
+            },
         );
         rec.record(|| format!("{name}.mlp_out"), &mlp);
-        let x3 = profile::scope(|| format!("{stage}.residual"), || x2 + self.drop_path.forward(mlp));
+        let x3 = profile::scope(
+            || format!("{stage}.residual"),
+            || x2 + self.drop_path.forward(mlp),
+        );
         rec.record(|| format!("{name}.out"), &x3);
         x3
     }
@@ -250,10 +372,22 @@ impl Block {
         let device = x2.device();
         let row_scale = self.drop_path_scale(n, &device)?;
         let norm = HostNorm::read(&self.norm2, self.ln_eps)?;
-        let (fc1, fc2) = (HostLinear::read(&self.mlp.fc1)?, HostLinear::read(&self.mlp.fc2)?);
+        let (fc1, fc2) = (
+            HostLinear::read(&self.mlp.fc1)?,
+            HostLinear::read(&self.mlp.fc2)?,
+        );
         let d = profile::scope(
             || "step.host_mlp.backward".to_string(),
-            || host_mlp::mlp_backward(&read_values(x2)?, &read_values(g_x3)?, row_scale.as_deref(), &norm, &fc1, &fc2),
+            || {
+                host_mlp::mlp_backward(
+                    &read_values(x2)?,
+                    &read_values(g_x3)?,
+                    row_scale.as_deref(),
+                    &norm,
+                    &fc1,
+                    &fc2,
+                )
+            },
         )?;
         let mut grads = PartGrads::default();
         grads.norm(&self.norm2, d.ln_gamma, d.ln_beta, &device);
@@ -283,24 +417,44 @@ impl PartGrads {
     /// Adds the gradients of `linear` (weight and bias).
     fn linear(&mut self, linear: &Linear, d: &LinearGrads, device: &Device) {
         let [d_in, d_out] = linear.weight.dims();
-        self.matrices.push((linear.weight.id, Tensor::from_data(TensorData::new(d.weight.clone(), [d_in, d_out]), device)));
+        self.matrices.push((
+            linear.weight.id,
+            Tensor::from_data(TensorData::new(d.weight.clone(), [d_in, d_out]), device),
+        ));
         if let Some(b) = &linear.bias {
-            self.vectors.push((b.id, Tensor::from_data(TensorData::new(d.bias.clone(), [d_out]), device)));
+            self.vectors.push((
+                b.id,
+                Tensor::from_data(TensorData::new(d.bias.clone(), [d_out]), device),
+            ));
         }
     }
 
     /// Adds the gradients of `norm` (γ, β).
     fn norm(&mut self, norm: &LayerNorm, d_gamma: Vec<f32>, d_beta: Vec<f32>, device: &Device) {
         let c = d_gamma.len();
-        self.vectors.push((norm.gamma.id, Tensor::from_data(TensorData::new(d_gamma, [c]), device)));
+        self.vectors.push((
+            norm.gamma.id,
+            Tensor::from_data(TensorData::new(d_gamma, [c]), device),
+        ));
         if let Some(b) = &norm.beta {
-            self.vectors.push((b.id, Tensor::from_data(TensorData::new(d_beta, [c]), device)));
+            self.vectors.push((
+                b.id,
+                Tensor::from_data(TensorData::new(d_beta, [c]), device),
+            ));
         }
     }
 
     /// The LayerNorm backward ([`NormRows::backward`]): adds the gradients of `norm` and
     /// returns `residual + d x`.
-    fn norm_backward(&mut self, norm: &LayerNorm, state: &NormRows, host: &HostNorm, g_u: &[f32], residual: Option<&[f32]>, device: &Device) -> Vec<f32> {
+    fn norm_backward(
+        &mut self,
+        norm: &LayerNorm,
+        state: &NormRows,
+        host: &HostNorm,
+        g_u: &[f32],
+        residual: Option<&[f32]>,
+        device: &Device,
+    ) -> Vec<f32> {
         let c = host.gamma.len();
         let (mut d_gamma, mut d_beta) = (vec![0.0; c], vec![0.0; c]);
         let dx = state.backward(g_u, &host.gamma, residual, &mut d_gamma, &mut d_beta);

@@ -11,7 +11,7 @@
 
 use std::path::Path;
 
-use safetensors::tensor::TensorView;
+use ggpt_core::io::st::StWriter;
 use safetensors::{Dtype, SafeTensors};
 
 use crate::error::{ModelError, Result};
@@ -19,43 +19,69 @@ use crate::model::ChunkOutput;
 use crate::plan::ChunkInput;
 
 fn err(origin: &Path, message: String) -> ModelError {
-    ModelError::ChunkInput { path: origin.to_path_buf(), message }
+    ModelError::ChunkInput {
+        path: origin.to_path_buf(),
+        message,
+    }
 }
 
 /// Reads tensor `name` as f32 values with its shape (f32 only).
 pub fn read_f32(st: &SafeTensors<'_>, name: &str, origin: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
-    let view = st.tensor(name).map_err(|e| err(origin, format!("{name}: {e}")))?;
+    let view = st
+        .tensor(name)
+        .map_err(|e| err(origin, format!("{name}: {e}")))?;
     if view.dtype() != Dtype::F32 {
-        return Err(err(origin, format!("{name}: expected F32, found {:?}", view.dtype())));
+        return Err(err(
+            origin,
+            format!("{name}: expected F32, found {:?}", view.dtype()),
+        ));
     }
-    let values = view.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    let values = view
+        .data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
     Ok((view.shape().to_vec(), values))
 }
 
 /// Reads a mask tensor as bools (BOOL, U8, I32, I64 or F32 holding 0/1).
-pub fn read_mask(st: &SafeTensors<'_>, name: &str, origin: &Path) -> Result<(Vec<usize>, Vec<bool>)> {
-    let view = st.tensor(name).map_err(|e| err(origin, format!("{name}: {e}")))?;
-    let data = view.data();
-    let values: Vec<bool> = match view.dtype() {
-        Dtype::BOOL | Dtype::U8 => data.iter().map(|&b| b != 0).collect(),
-        Dtype::I32 => data.chunks_exact(4).map(|b| i32::from_le_bytes([b[0], b[1], b[2], b[3]]) != 0).collect(),
-        Dtype::I64 => data.chunks_exact(8).map(|b| b.iter().any(|&x| x != 0)).collect(),
-        Dtype::F32 => data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]) != 0.0).collect(),
-        other => return Err(err(origin, format!("{name}: unsupported mask dtype {other:?}"))),
-    };
+pub fn read_mask(
+    st: &SafeTensors<'_>,
+    name: &str,
+    origin: &Path,
+) -> Result<(Vec<usize>, Vec<bool>)> {
+    let view = st
+        .tensor(name)
+        .map_err(|e| err(origin, format!("{name}: {e}")))?;
+    let values = ggpt_core::io::st::mask_values(view.dtype(), view.data()).ok_or_else(|| {
+        err(
+            origin,
+            format!("{name}: unsupported mask dtype {:?}", view.dtype()),
+        )
+    })?;
     Ok((view.shape().to_vec(), values))
 }
 
-fn points(shape: &[usize], values: Vec<f32>, name: &str, k: Option<usize>, origin: &Path) -> Result<Vec<[f32; 3]>> {
+fn points(
+    shape: &[usize],
+    values: Vec<f32>,
+    name: &str,
+    k: Option<usize>,
+    origin: &Path,
+) -> Result<Vec<[f32; 3]>> {
     if shape.len() != 2 || shape[1] != 3 || k.is_some_and(|k| shape[0] != k) {
-        return Err(err(origin, format!("{name}: shape {shape:?}, expected [K, 3]")));
+        return Err(err(
+            origin,
+            format!("{name}: shape {shape:?}, expected [K, 3]"),
+        ));
     }
     Ok(values.chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect())
 }
 
 /// Parses every `chunk{c}/...` record of a safetensors file's bytes.
 pub fn chunk_inputs_from_bytes(bytes: &[u8], origin: &Path) -> Result<Vec<ChunkInput>> {
-    let st = SafeTensors::deserialize(bytes).map_err(|e| err(origin, format!("invalid safetensors: {e}")))?;
+    let st = SafeTensors::deserialize(bytes)
+        .map_err(|e| err(origin, format!("invalid safetensors: {e}")))?;
     let mut chunks = Vec::new();
     for c in 0.. {
         let prefix = format!("chunk{c}/");
@@ -67,15 +93,26 @@ pub fn chunk_inputs_from_bytes(bytes: &[u8], origin: &Path) -> Result<Vec<ChunkI
         let k = ff_pts.len();
         let (s, ff_conf) = read_f32(&st, &format!("{prefix}ff_pts_conf"), origin)?;
         if s != [k] {
-            return Err(err(origin, format!("{prefix}ff_pts_conf: shape {s:?}, expected [{k}]")));
+            return Err(err(
+                origin,
+                format!("{prefix}ff_pts_conf: shape {s:?}, expected [{k}]"),
+            ));
         }
         let (s, v) = read_f32(&st, &format!("{prefix}geo_pts"), origin)?;
         let geo_pts = points(&s, v, &format!("{prefix}geo_pts"), Some(k), origin)?;
         let (s, geo_msk) = read_mask(&st, &format!("{prefix}geo_msks"), origin)?;
         if s != [k] {
-            return Err(err(origin, format!("{prefix}geo_msks: shape {s:?}, expected [{k}]")));
+            return Err(err(
+                origin,
+                format!("{prefix}geo_msks: shape {s:?}, expected [{k}]"),
+            ));
         }
-        chunks.push(ChunkInput { ff_pts, ff_conf, geo_pts, geo_msk });
+        chunks.push(ChunkInput {
+            ff_pts,
+            ff_conf,
+            geo_pts,
+            geo_msk,
+        });
     }
     if chunks.is_empty() {
         return Err(err(origin, "no chunk0/ff_pts tensor".into()));
@@ -89,34 +126,49 @@ pub fn read_chunk_inputs(path: &Path) -> Result<Vec<ChunkInput>> {
     chunk_inputs_from_bytes(&bytes, path)
 }
 
-fn f32_bytes(values: impl Iterator<Item = f32>) -> Vec<u8> {
-    values.flat_map(f32::to_le_bytes).collect()
-}
-
 /// Serialises per-chunk outputs as safetensors bytes (names in the module docs).
 pub fn chunk_outputs_to_bytes(outputs: &[ChunkOutput]) -> Result<Vec<u8>> {
-    let mut owned: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
+    let mut w = StWriter::new();
+    let flat = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
     for (c, o) in outputs.iter().enumerate() {
         let k = o.ff_pts_out.len();
         let n = o.tokens_conf_out.len();
-        let p3 = |v: &[[f32; 3]]| f32_bytes(v.iter().flat_map(|p| p.iter().copied()));
-        owned.push((format!("chunk{c}/ff_pts_out"), vec![k, 3], p3(&o.ff_pts_out)));
-        owned.push((format!("chunk{c}/ff_pts_conf_out"), vec![k], f32_bytes(o.ff_pts_conf_out.iter().copied())));
-        owned.push((format!("chunk{c}/geo_pts_out"), vec![k, 3], p3(&o.geo_pts_out)));
-        owned.push((format!("chunk{c}/geo_pts_conf_out"), vec![k], f32_bytes(o.geo_pts_conf_out.iter().copied())));
-        owned.push((format!("chunk{c}/tokens_xyz_out"), vec![n, 3], p3(&o.tokens_xyz_out)));
-        owned.push((format!("chunk{c}/tokens_conf_out"), vec![n], f32_bytes(o.tokens_conf_out.iter().copied())));
+        w.f32(
+            &format!("chunk{c}/ff_pts_out"),
+            &[k, 3],
+            &flat(&o.ff_pts_out),
+        );
+        w.f32(
+            &format!("chunk{c}/ff_pts_conf_out"),
+            &[k],
+            &o.ff_pts_conf_out,
+        );
+        w.f32(
+            &format!("chunk{c}/geo_pts_out"),
+            &[k, 3],
+            &flat(&o.geo_pts_out),
+        );
+        w.f32(
+            &format!("chunk{c}/geo_pts_conf_out"),
+            &[k],
+            &o.geo_pts_conf_out,
+        );
+        w.f32(
+            &format!("chunk{c}/tokens_xyz_out"),
+            &[n, 3],
+            &flat(&o.tokens_xyz_out),
+        );
+        w.f32(
+            &format!("chunk{c}/tokens_conf_out"),
+            &[n],
+            &o.tokens_conf_out,
+        );
     }
-    let views = owned
-        .iter()
-        .map(|(name, shape, data)| {
-            TensorView::new(Dtype::F32, shape.clone(), data)
-                .map(|v| (name.clone(), v))
-                .map_err(|e| ModelError::CheckpointWrite { path: name.into(), message: e.to_string() })
+    w.finish(Path::new("<outputs>"), None)
+        .map_err(|e| ModelError::CheckpointWrite {
+            path: "<outputs>".into(),
+            message: e.to_string(),
         })
-        .collect::<Result<Vec<_>>>()?;
-    safetensors::serialize(views, None)
-        .map_err(|e| ModelError::CheckpointWrite { path: "<outputs>".into(), message: e.to_string() })
 }
 
 #[cfg(test)]

@@ -216,7 +216,10 @@ impl GgptConfig {
     /// Parses a JSON text holding either the `model_config` object itself or an object with a
     /// `model_config` key (e.g. a fixture `manifest.json`), then validates it.
     pub fn from_json_str(text: &str, origin: &Path) -> Result<Self> {
-        let err = |message: String| ModelError::Config { path: origin.to_path_buf(), message };
+        let err = |message: String| ModelError::Config {
+            path: origin.to_path_buf(),
+            message,
+        };
         let value: serde_json::Value =
             serde_json::from_str(text).map_err(|e| err(format!("invalid JSON: {e}")))?;
         let object = match value.get("model_config") {
@@ -256,7 +259,9 @@ impl GgptConfig {
         for s in 0..NUM_LEVELS {
             let (c, h) = (self.enc_channels[s], self.enc_num_head[s]);
             if c == 0 || h == 0 || c % h != 0 {
-                return Err(format!("encoder stage {s}: {c} channels not divisible by {h} heads"));
+                return Err(format!(
+                    "encoder stage {s}: {c} channels not divisible by {h} heads"
+                ));
             }
             if self.enc_depths[s] == 0 {
                 return Err(format!("encoder stage {s} has no block"));
@@ -265,7 +270,9 @@ impl GgptConfig {
         for s in 0..NUM_DEC_STAGES {
             let (c, h) = (self.dec_channels[s], self.dec_num_head[s]);
             if c == 0 || h == 0 || c % h != 0 {
-                return Err(format!("decoder stage {s}: {c} channels not divisible by {h} heads"));
+                return Err(format!(
+                    "decoder stage {s}: {c} channels not divisible by {h} heads"
+                ));
             }
             if self.dec_depths[s] == 0 {
                 return Err(format!("decoder stage {s} has no block"));
@@ -278,13 +285,27 @@ impl GgptConfig {
             ));
         }
         if self.sinusoidal_dim != 32 {
-            return Err(format!("sinusoidal_dim {} unsupported (expected 32)", self.sinusoidal_dim));
+            return Err(format!(
+                "sinusoidal_dim {} unsupported (expected 32)",
+                self.sinusoidal_dim
+            ));
         }
-        if self.order.iter().map(String::as_str).ne(ORDERS.iter().copied()) {
-            return Err(format!("order {:?} unsupported (expected {ORDERS:?})", self.order));
+        if self
+            .order
+            .iter()
+            .map(String::as_str)
+            .ne(ORDERS.iter().copied())
+        {
+            return Err(format!(
+                "order {:?} unsupported (expected {ORDERS:?})",
+                self.order
+            ));
         }
         if self.stride.iter().any(|&s| s != 2) {
-            return Err(format!("stride {:?} unsupported (expected all 2)", self.stride));
+            return Err(format!(
+                "stride {:?} unsupported (expected all 2)",
+                self.stride
+            ));
         }
         if self.patch_size == 0 || self.head_width == 0 || self.mlp_ratio == 0 {
             return Err("patch_size, head_width and mlp_ratio must be positive".into());
@@ -293,8 +314,12 @@ impl GgptConfig {
             return Err(format!("drop_path {} outside [0, 1)", self.drop_path));
         }
         // Burn's BatchNorm / LayerNorm constructors panic on these; here they are errors.
-        if !(self.bn_eps.is_finite() && self.bn_eps > 0.0) || !(self.ln_eps.is_finite() && self.ln_eps > 0.0) {
-            return Err(format!("bn_eps {} / ln_eps {}: must be finite and > 0", self.bn_eps, self.ln_eps));
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        if !positive(self.bn_eps) || !positive(self.ln_eps) {
+            return Err(format!(
+                "bn_eps {} / ln_eps {}: must be finite and > 0",
+                self.bn_eps, self.ln_eps
+            ));
         }
         if !(self.bn_momentum.is_finite() && (0.0..=1.0).contains(&self.bn_momentum)) {
             return Err(format!("bn_momentum {} outside [0, 1]", self.bn_momentum));
@@ -303,12 +328,24 @@ impl GgptConfig {
         // configuration is an error here and not a multi-terabyte allocation in `Ggpt::new`.
         let channels = self.enc_channels.iter().chain(&self.dec_channels);
         if let Some(c) = channels.into_iter().find(|&&c| c > MAX_CHANNELS) {
-            return Err(format!("{c} channels in a stage (at most {MAX_CHANNELS} supported)"));
+            return Err(format!(
+                "{c} channels in a stage (at most {MAX_CHANNELS} supported)"
+            ));
         }
-        if let Some(d) = self.enc_depths.iter().chain(&self.dec_depths).find(|&&d| d > MAX_DEPTH) {
-            return Err(format!("{d} blocks in a stage (at most {MAX_DEPTH} supported)"));
+        if let Some(d) = self
+            .enc_depths
+            .iter()
+            .chain(&self.dec_depths)
+            .find(|&&d| d > MAX_DEPTH)
+        {
+            return Err(format!(
+                "{d} blocks in a stage (at most {MAX_DEPTH} supported)"
+            ));
         }
-        if self.mlp_ratio > MAX_MLP_RATIO || self.head_width > MAX_CHANNELS || self.patch_size > MAX_PATCH_SIZE {
+        if self.mlp_ratio > MAX_MLP_RATIO
+            || self.head_width > MAX_CHANNELS
+            || self.patch_size > MAX_PATCH_SIZE
+        {
             return Err(format!(
                 "mlp_ratio {} / head_width {} / patch_size {} out of range (at most {MAX_MLP_RATIO} / {MAX_CHANNELS} / {MAX_PATCH_SIZE})",
                 self.mlp_ratio, self.head_width, self.patch_size
@@ -316,20 +353,41 @@ impl GgptConfig {
         }
         let params = self.parameter_count();
         if params > MAX_PARAMETERS {
-            return Err(format!("{params} parameters (at most {MAX_PARAMETERS} supported; the released network has 53,409,828)"));
+            return Err(format!(
+                "{params} parameters (at most {MAX_PARAMETERS} supported; the released network has 53,409,828)"
+            ));
         }
         Ok(())
     }
 
     /// Decoder input channels of stage `s` from the coarser level (`D_{s+1}`, `D_4 := E_4`).
     pub fn dec_in_channels(&self, s: usize) -> usize {
-        if s + 1 < NUM_DEC_STAGES { self.dec_channels[s + 1] } else { self.enc_channels[NUM_LEVELS - 1] }
+        if s + 1 < NUM_DEC_STAGES {
+            self.dec_channels[s + 1]
+        } else {
+            self.enc_channels[NUM_LEVELS - 1]
+        }
     }
 
     /// Closed-form trainable parameter count (network.md §1.3).
     pub fn parameter_count(&self) -> usize {
-        let block = |c: usize| 27 * c * c + c + c * c + c + 2 * c + 2 * c + 3 * c * c + 3 * c + c * c + c + 2 * c
-            + self.mlp_ratio * c * c + self.mlp_ratio * c + self.mlp_ratio * c * c + c;
+        let block = |c: usize| {
+            27 * c * c
+                + c
+                + c * c
+                + c
+                + 2 * c
+                + 2 * c
+                + 3 * c * c
+                + 3 * c
+                + c * c
+                + c
+                + 2 * c
+                + self.mlp_ratio * c * c
+                + self.mlp_ratio * c
+                + self.mlp_ratio * c * c
+                + c
+        };
         let e = &self.enc_channels;
         let d = &self.dec_channels;
         let mut n = 2 * self.type_embed_dim;
@@ -414,7 +472,10 @@ mod tests {
         let text = std::fs::read_to_string(path).expect("readable");
         let v: serde_json::Value = serde_json::from_str(&text).expect("json");
         let bare = serde_json::to_string(&v["model_config"]).expect("json");
-        assert_eq!(GgptConfig::from_json_str(&bare, Path::new("<json>")).expect("bare"), cfg);
+        assert_eq!(
+            GgptConfig::from_json_str(&bare, Path::new("<json>")).expect("bare"),
+            cfg
+        );
     }
 
     #[test]

@@ -30,7 +30,10 @@ pub fn device_from_name(name: &str) -> Result<Device> {
 fn split_index(name: &str) -> Result<(&str, Option<usize>)> {
     match name.split_once(':') {
         None => Ok((name, None)),
-        Some((base, i)) => i.parse().map(|i| (base, Some(i))).map_err(|_| ModelError::Device(name.to_string())),
+        Some((base, i)) => i
+            .parse()
+            .map(|i| (base, Some(i)))
+            .map_err(|_| ModelError::Device(name.to_string())),
     }
 }
 
@@ -70,7 +73,11 @@ pub fn init_cpu_threads(threads: usize) -> Result<()> {
     rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build_global()
-        .map_err(|e| ModelError::Threads(format!("cannot size the CPU thread pool to {threads} threads: {e}")))
+        .map_err(|e| {
+            ModelError::Threads(format!(
+                "cannot size the CPU thread pool to {threads} threads: {e}"
+            ))
+        })
 }
 
 /// Keeps freed memory in the process instead of returning it to the kernel after every tensor
@@ -90,7 +97,10 @@ pub fn tune_allocator() -> bool {
         const MMAP_THRESHOLD: libc::c_int = 32 << 20;
         const TRIM_THRESHOLD: libc::c_int = 1 << 30;
         // SAFETY: mallopt only adjusts glibc malloc parameters; no memory is touched.
-        unsafe { libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD) == 1 && libc::mallopt(libc::M_TRIM_THRESHOLD, TRIM_THRESHOLD) == 1 }
+        unsafe {
+            libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD) == 1
+                && libc::mallopt(libc::M_TRIM_THRESHOLD, TRIM_THRESHOLD) == 1
+        }
     }
     #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
     {
@@ -121,8 +131,14 @@ mod index_tests {
         assert_eq!(split_index("wgpu:1").unwrap(), ("wgpu", Some(1)));
         assert_eq!(split_index("cpu").unwrap(), ("cpu", None));
         assert!(split_index("wgpu:x").is_err());
-        assert_eq!(default_device_env_name("wgpu:3"), default_device_env_name("wgpu"));
-        assert!(device_from_name("ndarray:1").is_err(), "CPU backends take no index");
+        assert_eq!(
+            default_device_env_name("wgpu:3"),
+            default_device_env_name("wgpu")
+        );
+        assert!(
+            device_from_name("ndarray:1").is_err(),
+            "CPU backends take no index"
+        );
         assert!(device_from_name("tpu").is_err());
     }
 }

@@ -56,7 +56,10 @@ pub struct DropPath {
 impl DropPath {
     /// A drop path of rate `prob` in `[0, 1)`.
     pub fn new(prob: f64) -> Self {
-        Self { prob, training: Param::from_bool(true) }
+        Self {
+            prob,
+            training: Param::from_bool(true),
+        }
     }
 
     /// `x [N, C] -> [N, C]`; active only on an autodiff device with the training flag on.
@@ -67,7 +70,13 @@ impl DropPath {
         }
         let [n, _] = x.dims();
         let keep = 1.0 - self.prob;
-        let host: Option<Vec<f32>> = MASK_RNG.with(|r| r.borrow_mut().as_mut().map(|rng| (0..n).map(|_| if rng.random::<f64>() < keep { 1.0 } else { 0.0 }).collect()));
+        let host: Option<Vec<f32>> = MASK_RNG.with(|r| {
+            r.borrow_mut().as_mut().map(|rng| {
+                (0..n)
+                    .map(|_| if rng.random::<f64>() < keep { 1.0 } else { 0.0 })
+                    .collect()
+            })
+        });
         let mask = match host {
             Some(values) => Tensor::<2>::from_data(TensorData::new(values, [n, 1]), &device),
             None => Tensor::<2>::random([n, 1], Distribution::Bernoulli(keep), &device),

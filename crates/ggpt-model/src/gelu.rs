@@ -40,7 +40,10 @@ fn host_gelu<const D: usize>(x: &Tensor<D>) -> Option<Tensor<D>> {
     }
     let mut values = read_values(x.clone())?;
     gelu_in_place(&mut values);
-    Some(Tensor::from_data(TensorData::new(values, x.dims()), &device))
+    Some(Tensor::from_data(
+        TensorData::new(values, x.dims()),
+        &device,
+    ))
 }
 
 #[cfg(test)]
@@ -77,15 +80,28 @@ mod tests {
         let x = Tensor::<1>::from_data(TensorData::new(xs.clone(), [n]), &device).require_grad();
         let y = gelu(x.clone());
         let grads = y.clone().sum().backward();
-        let gx: Vec<f32> = x.grad(&grads).expect("grad").into_data().to_vec().expect("f32");
+        let gx: Vec<f32> = x
+            .grad(&grads)
+            .expect("grad")
+            .into_data()
+            .to_vec()
+            .expect("f32");
         let yv: Vec<f32> = y.into_data().to_vec().expect("f32");
         for (i, &xi) in xs.iter().enumerate() {
             let x64 = xi as f64;
             let want = 0.5 * x64 * (1.0 + erf64(x64 / 2f64.sqrt()));
             let dwant = 0.5 * (1.0 + erf64(x64 / 2f64.sqrt()))
                 + x64 * (-x64 * x64 / 2.0).exp() / (2.0 * std::f64::consts::PI).sqrt();
-            assert!((yv[i] as f64 - want).abs() < 2e-6, "gelu({xi}) = {} want {want}", yv[i]);
-            assert!((gx[i] as f64 - dwant).abs() < 2e-6, "gelu'({xi}) = {} want {dwant}", gx[i]);
+            assert!(
+                (yv[i] as f64 - want).abs() < 2e-6,
+                "gelu({xi}) = {} want {want}",
+                yv[i]
+            );
+            assert!(
+                (gx[i] as f64 - dwant).abs() < 2e-6,
+                "gelu'({xi}) = {} want {dwant}",
+                gx[i]
+            );
         }
     }
 }

@@ -29,13 +29,16 @@ impl Head {
         Self {
             fc1: LinearConfig::new(c_in, width).init(device),
             fc2: LinearConfig::new(width, width).init(device),
-            fc3: LinearConfig::new(width, 4).with_initializer(burn::nn::Initializer::Zeros).init(device),
+            fc3: LinearConfig::new(width, 4)
+                .with_initializer(burn::nn::Initializer::Zeros)
+                .init(device),
         }
     }
 
     /// `head_in [N, D_0 + 218] -> h [N, 4]` (pre-activation).
     pub fn forward(&self, head_in: Tensor<2>) -> Tensor<2> {
-        self.fc3.forward(relu(self.fc2.forward(relu(self.fc1.forward(head_in)))))
+        self.fc3
+            .forward(relu(self.fc2.forward(relu(self.fc1.forward(head_in)))))
     }
 }
 

@@ -52,7 +52,12 @@ impl WindowShape {
 /// `h d..(h+1) d`), each row `softmax(scale q kᵀ) v` over the `L` tokens of its own window.
 /// Returns `None` when `rows` does not have `W L 3C` elements.
 pub fn window_attention(rows: &[f32], shape: WindowShape, scale: f32) -> Option<Vec<f32>> {
-    let WindowShape { windows, len, heads, .. } = shape;
+    let WindowShape {
+        windows,
+        len,
+        heads,
+        ..
+    } = shape;
     let c = shape.channels();
     if rows.len() != windows * len * 3 * c {
         return None;
@@ -90,8 +95,20 @@ unsafe impl Sync for SharedOut {}
 /// `rows` has `W L 3C` elements, `out` points to `W L C` writable elements that no other
 /// thread writes in this block, `scores` has at least `qb L` elements.
 #[allow(clippy::too_many_arguments)]
-unsafe fn block(rows: &[f32], out: &SharedOut, scores: &mut [f32], shape: WindowShape, scale: f32, w: usize, h: usize, q0: usize, qb: usize) {
-    let WindowShape { len, head_dim: d, .. } = shape;
+unsafe fn block(
+    rows: &[f32],
+    out: &SharedOut,
+    scores: &mut [f32],
+    shape: WindowShape,
+    scale: f32,
+    w: usize,
+    h: usize,
+    q0: usize,
+    qb: usize,
+) {
+    let WindowShape {
+        len, head_dim: d, ..
+    } = shape;
     let c = shape.channels();
     let row_stride = (3 * c) as isize;
     let win = w * len * 3 * c;
@@ -102,14 +119,54 @@ unsafe fn block(rows: &[f32], out: &SharedOut, scores: &mut [f32], shape: Window
     // SAFETY (both GEMMs): every index the strides reach lies inside `rows` / `s` / `out`.
     unsafe {
         // S [qb, L] = scale · Q [qb, d] · Kᵀ [d, L]   (Kᵀ(j, t) = K(t, j): row stride 1, column stride 3C)
-        gemm::gemm(qb, len, d, s.as_mut_ptr(), 1, len as isize, false, q, 1, row_stride, k, row_stride, 1, 0.0f32, scale, false, false, false, gemm::Parallelism::None);
+        gemm::gemm(
+            qb,
+            len,
+            d,
+            s.as_mut_ptr(),
+            1,
+            len as isize,
+            false,
+            q,
+            1,
+            row_stride,
+            k,
+            row_stride,
+            1,
+            0.0f32,
+            scale,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
     }
     let mut inv_sum = [0.0f32; QUERY_BLOCK];
     softmax_rows(s, len, &mut inv_sum[..qb]);
     let o = out.0.wrapping_add((w * len + q0) * c + h * d);
     unsafe {
         // O [qb, d] = P [qb, L] · V [L, d], written into the output rows (row stride C).
-        gemm::gemm(qb, d, len, o, 1, c as isize, false, s.as_ptr(), 1, len as isize, v, 1, row_stride, 0.0f32, 1.0f32, false, false, false, gemm::Parallelism::None);
+        gemm::gemm(
+            qb,
+            d,
+            len,
+            o,
+            1,
+            c as isize,
+            false,
+            s.as_ptr(),
+            1,
+            len as isize,
+            v,
+            1,
+            row_stride,
+            0.0f32,
+            1.0f32,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
         for (r, &inv) in inv_sum[..qb].iter().enumerate() {
             let row = std::slice::from_raw_parts_mut(o.wrapping_add(r * c), d);
             for x in row {
@@ -123,7 +180,8 @@ unsafe fn block(rows: &[f32], out: &SharedOut, scores: &mut [f32], shape: Window
 pub(crate) fn softmax_rows(s: &mut [f32], len: usize, inv_sum: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
     {
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
             // SAFETY: the CPU supports AVX2 and FMA (checked just above).
             unsafe { softmax_rows_avx2(s, len, inv_sum) };
             return;
@@ -163,7 +221,10 @@ fn row_max(row: &[f32]) -> f32 {
             *a = if x > *a { x } else { *a };
         }
     }
-    let mut m = it.remainder().iter().fold(f32::NEG_INFINITY, |a, &x| if x > a { x } else { a });
+    let mut m = it
+        .remainder()
+        .iter()
+        .fold(f32::NEG_INFINITY, |a, &x| if x > a { x } else { a });
     for a in acc {
         m = if a > m { a } else { m };
     }
@@ -201,7 +262,10 @@ pub fn exp_nonpositive(x: f32) -> f32 {
     let t = x * std::f32::consts::LOG2_E + ROUND_MAGIC;
     let n = t - ROUND_MAGIC;
     let r = (x - n * LN2_HI) - n * LN2_LO;
-    let p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0))))));
+    let p = 1.0
+        + r * (1.0
+            + r * (0.5
+                + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0))))));
     // The integer n sits in the low mantissa bits of t (offset 2^22).
     let ni = (t.to_bits() as i32).wrapping_sub(ROUND_MAGIC.to_bits() as i32);
     p * f32::from_bits((ni.wrapping_add(127) << 23) as u32)
@@ -215,16 +279,26 @@ pub(crate) mod tests {
     fn reference(rows: &[f32], s: WindowShape, scale: f32) -> Vec<f32> {
         let (l, h, d, c) = (s.len, s.heads, s.head_dim, s.channels());
         let mut out = vec![0.0f32; s.windows * l * c];
-        let at = |w: usize, t: usize, part: usize, hh: usize, j: usize| rows[(w * l + t) * 3 * c + part * c + hh * d + j] as f64;
+        let at = |w: usize, t: usize, part: usize, hh: usize, j: usize| {
+            rows[(w * l + t) * 3 * c + part * c + hh * d + j] as f64
+        };
         for w in 0..s.windows {
             for hh in 0..h {
                 for i in 0..l {
-                    let sc: Vec<f64> = (0..l).map(|t| (0..d).map(|j| at(w, i, 0, hh, j) * at(w, t, 1, hh, j)).sum::<f64>() * scale as f64).collect();
+                    let sc: Vec<f64> = (0..l)
+                        .map(|t| {
+                            (0..d)
+                                .map(|j| at(w, i, 0, hh, j) * at(w, t, 1, hh, j))
+                                .sum::<f64>()
+                                * scale as f64
+                        })
+                        .collect();
                     let m = sc.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
                     let e: Vec<f64> = sc.iter().map(|x| (x - m).exp()).collect();
                     let z: f64 = e.iter().sum();
                     for j in 0..d {
-                        out[(w * l + i) * c + hh * d + j] = ((0..l).map(|t| e[t] * at(w, t, 2, hh, j)).sum::<f64>() / z) as f32;
+                        out[(w * l + i) * c + hh * d + j] =
+                            ((0..l).map(|t| e[t] * at(w, t, 2, hh, j)).sum::<f64>() / z) as f32;
                     }
                 }
             }
@@ -263,22 +337,44 @@ pub(crate) mod tests {
     fn matches_reference_for_short_long_and_odd_windows() {
         // (windows, len, heads, head_dim): odd length and a partial query block, several blocks,
         // a single token.
-        for (i, &(w, l, h, d)) in [(2, 37, 3, 8), (1, 150, 2, 16), (3, 1, 2, 4), (1, 64, 1, 24)].iter().enumerate() {
-            let shape = WindowShape { windows: w, len: l, heads: h, head_dim: d };
+        for (i, &(w, l, h, d)) in [(2, 37, 3, 8), (1, 150, 2, 16), (3, 1, 2, 4), (1, 64, 1, 24)]
+            .iter()
+            .enumerate()
+        {
+            let shape = WindowShape {
+                windows: w,
+                len: l,
+                heads: h,
+                head_dim: d,
+            };
             let rows = pseudo_random(w * l * 3 * h * d, i as u64 + 1);
             let scale = (d as f32).powf(-0.5);
             let got = window_attention(&rows, shape, scale).unwrap();
             let want = reference(&rows, shape, scale);
-            let err = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+            let err = got
+                .iter()
+                .zip(&want)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
             assert!(err < 2e-6, "{shape:?}: max abs error {err}");
         }
     }
 
     #[test]
     fn rejects_wrong_length_and_handles_empty() {
-        let shape = WindowShape { windows: 2, len: 4, heads: 2, head_dim: 4 };
+        let shape = WindowShape {
+            windows: 2,
+            len: 4,
+            heads: 2,
+            head_dim: 4,
+        };
         assert!(window_attention(&[0.0; 10], shape, 1.0).is_none());
-        let empty = WindowShape { windows: 0, len: 4, heads: 2, head_dim: 4 };
+        let empty = WindowShape {
+            windows: 0,
+            len: 4,
+            heads: 2,
+            head_dim: 4,
+        };
         assert_eq!(window_attention(&[], empty, 1.0), Some(Vec::new()));
     }
 }

@@ -30,8 +30,18 @@ use crate::host_attention::{QUERY_BLOCK, WindowShape, softmax_rows};
 /// `rows` `[W L, 3C]` and `d_out` `[W L, C]` row-major, as for
 /// [`crate::host_attention::window_attention`] (whose output `d_out` is the gradient of).
 /// Returns `d_rows` `[W L, 3C]`, or `None` when a length does not match `shape`.
-pub fn window_attention_backward(rows: &[f32], d_out: &[f32], shape: WindowShape, scale: f32) -> Option<Vec<f32>> {
-    let WindowShape { windows, len, heads, .. } = shape;
+pub fn window_attention_backward(
+    rows: &[f32],
+    d_out: &[f32],
+    shape: WindowShape,
+    scale: f32,
+) -> Option<Vec<f32>> {
+    let WindowShape {
+        windows,
+        len,
+        heads,
+        ..
+    } = shape;
     let c = shape.channels();
     if rows.len() != windows * len * 3 * c || d_out.len() != windows * len * c {
         return None;
@@ -73,7 +83,12 @@ struct Scratch {
 
 impl Scratch {
     fn new(len: usize, d: usize) -> Self {
-        Self { p: vec![0.0; QUERY_BLOCK * len], ds: vec![0.0; QUERY_BLOCK * len], dk: vec![0.0; len * d], dv: vec![0.0; len * d] }
+        Self {
+            p: vec![0.0; QUERY_BLOCK * len],
+            ds: vec![0.0; QUERY_BLOCK * len],
+            dk: vec![0.0; len * d],
+            dv: vec![0.0; len * d],
+        }
     }
 }
 
@@ -83,8 +98,19 @@ impl Scratch {
 /// `rows` has `W L 3C` elements, `d_out` `W L C`, `out` points to `W L 3C` writable elements
 /// of which no other thread writes this task's block (see [`window_attention_backward`]).
 #[allow(clippy::too_many_arguments)]
-unsafe fn window_head(rows: &[f32], d_out: &[f32], out: &SharedOut, scratch: &mut Scratch, shape: WindowShape, scale: f32, w: usize, h: usize) {
-    let WindowShape { len, head_dim: d, .. } = shape;
+unsafe fn window_head(
+    rows: &[f32],
+    d_out: &[f32],
+    out: &SharedOut,
+    scratch: &mut Scratch,
+    shape: WindowShape,
+    scale: f32,
+    w: usize,
+    h: usize,
+) {
+    let WindowShape {
+        len, head_dim: d, ..
+    } = shape;
     let c = shape.channels();
     let rs = (3 * c) as isize;
     let win = w * len * 3 * c;
@@ -106,7 +132,27 @@ unsafe fn window_head(rows: &[f32], d_out: &[f32], out: &SharedOut, scratch: &mu
         // this task's block of `out` (the caller's contract).
         unsafe {
             // S [qb, L] = scale · Q [qb, d] · Kᵀ [d, L]
-            gemm::gemm(qb, len, d, p.as_mut_ptr(), 1, l, false, q, 1, rs, k, rs, 1, 0.0f32, scale, false, false, false, gemm::Parallelism::None);
+            gemm::gemm(
+                qb,
+                len,
+                d,
+                p.as_mut_ptr(),
+                1,
+                l,
+                false,
+                q,
+                1,
+                rs,
+                k,
+                rs,
+                1,
+                0.0f32,
+                scale,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
         }
         softmax_rows(p, len, &mut inv_sum[..qb]);
         for (row, &inv) in p.chunks_exact_mut(len).zip(&inv_sum[..qb]) {
@@ -116,7 +162,27 @@ unsafe fn window_head(rows: &[f32], d_out: &[f32], out: &SharedOut, scratch: &mu
         }
         unsafe {
             // dP [qb, L] = dO [qb, d] · Vᵀ [d, L]
-            gemm::gemm(qb, len, d, ds.as_mut_ptr(), 1, l, false, g, 1, c as isize, v, rs, 1, 0.0f32, 1.0f32, false, false, false, gemm::Parallelism::None);
+            gemm::gemm(
+                qb,
+                len,
+                d,
+                ds.as_mut_ptr(),
+                1,
+                l,
+                false,
+                g,
+                1,
+                c as isize,
+                v,
+                rs,
+                1,
+                0.0f32,
+                1.0f32,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
         }
         for (dsr, pr) in ds.chunks_exact_mut(len).zip(p.chunks_exact(len)) {
             let dot = dot(dsr, pr);
@@ -126,11 +192,71 @@ unsafe fn window_head(rows: &[f32], d_out: &[f32], out: &SharedOut, scratch: &mu
         }
         unsafe {
             // dQ [qb, d] = scale · dS [qb, L] · K [L, d]
-            gemm::gemm(qb, d, len, dq, 1, rs, false, ds.as_ptr(), 1, l, k, 1, rs, 0.0f32, scale, false, false, false, gemm::Parallelism::None);
+            gemm::gemm(
+                qb,
+                d,
+                len,
+                dq,
+                1,
+                rs,
+                false,
+                ds.as_ptr(),
+                1,
+                l,
+                k,
+                1,
+                rs,
+                0.0f32,
+                scale,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
             // dK [L, d] += scale · dSᵀ [L, qb] · Q [qb, d]
-            gemm::gemm(len, d, qb, dk.as_mut_ptr(), 1, d as isize, true, ds.as_ptr(), l, 1, q, 1, rs, 1.0f32, scale, false, false, false, gemm::Parallelism::None);
+            gemm::gemm(
+                len,
+                d,
+                qb,
+                dk.as_mut_ptr(),
+                1,
+                d as isize,
+                true,
+                ds.as_ptr(),
+                l,
+                1,
+                q,
+                1,
+                rs,
+                1.0f32,
+                scale,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
             // dV [L, d] += Pᵀ [L, qb] · dO [qb, d]
-            gemm::gemm(len, d, qb, dv.as_mut_ptr(), 1, d as isize, true, p.as_ptr(), l, 1, g, 1, c as isize, 1.0f32, 1.0f32, false, false, false, gemm::Parallelism::None);
+            gemm::gemm(
+                len,
+                d,
+                qb,
+                dv.as_mut_ptr(),
+                1,
+                d as isize,
+                true,
+                p.as_ptr(),
+                l,
+                1,
+                g,
+                1,
+                c as isize,
+                1.0f32,
+                1.0f32,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
         }
         q0 += qb;
     }
@@ -150,7 +276,12 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     const LANES: usize = 8;
     let mut acc = [0.0f32; LANES];
     let (ca, cb) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
-    let tail: f32 = ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum();
+    let tail: f32 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
     for (xa, xb) in ca.zip(cb) {
         for i in 0..LANES {
             acc[i] += xa[i] * xb[i];
@@ -166,18 +297,30 @@ mod tests {
 
     /// Deterministic values in [-1, 1).
     fn pseudo_random(n: usize, seed: u64) -> Vec<f32> {
-        crate::host_attention::tests::pseudo_random(n, seed).into_iter().map(|x| 0.5 * x).collect()
+        crate::host_attention::tests::pseudo_random(n, seed)
+            .into_iter()
+            .map(|x| 0.5 * x)
+            .collect()
     }
 
     /// `Σ g ∘ attention(rows)` in f64: the function whose gradient the kernel returns.
     fn objective(rows: &[f64], g: &[f32], s: WindowShape, scale: f64) -> f64 {
         let (l, h, d, c) = (s.len, s.heads, s.head_dim, s.channels());
-        let at = |w: usize, t: usize, part: usize, hh: usize, j: usize| rows[(w * l + t) * 3 * c + part * c + hh * d + j];
+        let at = |w: usize, t: usize, part: usize, hh: usize, j: usize| {
+            rows[(w * l + t) * 3 * c + part * c + hh * d + j]
+        };
         let mut total = 0.0;
         for w in 0..s.windows {
             for hh in 0..h {
                 for i in 0..l {
-                    let sc: Vec<f64> = (0..l).map(|t| (0..d).map(|j| at(w, i, 0, hh, j) * at(w, t, 1, hh, j)).sum::<f64>() * scale).collect();
+                    let sc: Vec<f64> = (0..l)
+                        .map(|t| {
+                            (0..d)
+                                .map(|j| at(w, i, 0, hh, j) * at(w, t, 1, hh, j))
+                                .sum::<f64>()
+                                * scale
+                        })
+                        .collect();
                     let m = sc.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
                     let e: Vec<f64> = sc.iter().map(|x| (x - m).exp()).collect();
                     let z: f64 = e.iter().sum();
@@ -194,8 +337,16 @@ mod tests {
     /// Central finite differences in f64 of every input element, against the kernel.
     #[test]
     fn matches_finite_differences() {
-        for (i, &(w, l, h, d)) in [(2, 5, 2, 3), (1, 70, 1, 4), (1, 1, 2, 2)].iter().enumerate() {
-            let shape = WindowShape { windows: w, len: l, heads: h, head_dim: d };
+        for (i, &(w, l, h, d)) in [(2, 5, 2, 3), (1, 70, 1, 4), (1, 1, 2, 2)]
+            .iter()
+            .enumerate()
+        {
+            let shape = WindowShape {
+                windows: w,
+                len: l,
+                heads: h,
+                head_dim: d,
+            };
             let rows = pseudo_random(w * l * 3 * h * d, 2 * i as u64 + 1);
             let g = pseudo_random(w * l * h * d, 2 * i as u64 + 2);
             let scale = (d as f32).powf(-0.5);
@@ -208,7 +359,9 @@ mod tests {
                 plus[e] += eps;
                 let mut minus = base.clone();
                 minus[e] -= eps;
-                let want = (objective(&plus, &g, shape, f64::from(scale)) - objective(&minus, &g, shape, f64::from(scale))) / (2.0 * eps);
+                let want = (objective(&plus, &g, shape, f64::from(scale))
+                    - objective(&minus, &g, shape, f64::from(scale)))
+                    / (2.0 * eps);
                 worst = worst.max((want - f64::from(got[e])).abs());
             }
             assert!(worst < 2e-5, "{shape:?}: worst gradient error {worst:e}");
@@ -219,26 +372,54 @@ mod tests {
     /// changes `Σ g ∘ out` by `|grad|² · step` to first order.
     #[test]
     fn consistent_with_the_forward_kernel() {
-        let shape = WindowShape { windows: 3, len: 130, heads: 2, head_dim: 8 };
+        let shape = WindowShape {
+            windows: 3,
+            len: 130,
+            heads: 2,
+            head_dim: 8,
+        };
         let rows = pseudo_random(3 * 130 * 3 * 16, 9);
         let g = pseudo_random(3 * 130 * 16, 10);
         let scale = 8f32.powf(-0.5);
         let grad = window_attention_backward(&rows, &g, shape, scale).unwrap();
-        let f = |r: &[f32]| -> f64 { window_attention(r, shape, scale).unwrap().iter().zip(&g).map(|(o, g)| f64::from(o * g)).sum() };
+        let f = |r: &[f32]| -> f64 {
+            window_attention(r, shape, scale)
+                .unwrap()
+                .iter()
+                .zip(&g)
+                .map(|(o, g)| f64::from(o * g))
+                .sum()
+        };
         let step = 1e-3f32;
         let moved: Vec<f32> = rows.iter().zip(&grad).map(|(x, d)| x + step * d).collect();
         let norm2: f64 = grad.iter().map(|d| f64::from(d * d)).sum();
         let predicted = norm2 * f64::from(step);
         let actual = f(&moved) - f(&rows);
-        assert!((actual - predicted).abs() < 0.02 * predicted, "{actual} vs {predicted}");
+        assert!(
+            (actual - predicted).abs() < 0.02 * predicted,
+            "{actual} vs {predicted}"
+        );
     }
 
     #[test]
     fn rejects_wrong_lengths_and_handles_empty() {
-        let shape = WindowShape { windows: 1, len: 4, heads: 1, head_dim: 2 };
+        let shape = WindowShape {
+            windows: 1,
+            len: 4,
+            heads: 1,
+            head_dim: 2,
+        };
         assert!(window_attention_backward(&[0.0; 24], &[0.0; 7], shape, 1.0).is_none());
         assert!(window_attention_backward(&[0.0; 23], &[0.0; 8], shape, 1.0).is_none());
-        let empty = WindowShape { windows: 0, len: 4, heads: 1, head_dim: 2 };
-        assert_eq!(window_attention_backward(&[], &[], empty, 1.0), Some(Vec::new()));
+        let empty = WindowShape {
+            windows: 0,
+            len: 4,
+            heads: 1,
+            head_dim: 2,
+        };
+        assert_eq!(
+            window_attention_backward(&[], &[], empty, 1.0),
+            Some(Vec::new())
+        );
     }
 }

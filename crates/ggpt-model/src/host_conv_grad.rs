@@ -48,7 +48,8 @@ impl HostConvTables {
         let group_entries = match (&index.group_members, &index.group_ids) {
             (Some(m), Some(ids)) if g > 0 => {
                 let (m, ids) = (read_indices(m)?, read_indices(ids)?);
-                if m.len() != ids.len() || m.iter().any(|&t| t >= n) || ids.iter().any(|&i| i >= g) {
+                if m.len() != ids.len() || m.iter().any(|&t| t >= n) || ids.iter().any(|&i| i >= g)
+                {
                     return None;
                 }
                 m.into_iter().zip(ids).collect()
@@ -59,14 +60,26 @@ impl HostConvTables {
         let mut taps = Vec::with_capacity(index.taps.len());
         for t in &index.taps {
             let (source, target) = (read_indices(&t.source)?, read_indices(&t.target)?);
-            if t.tap >= NUM_TAPS || source.len() != target.len() || source.iter().any(|&s| s >= n + g) || target.iter().any(|&r| r >= n) {
+            if t.tap >= NUM_TAPS
+                || source.len() != target.len()
+                || source.iter().any(|&s| s >= n + g)
+                || target.iter().any(|&r| r >= n)
+            {
                 return None;
             }
             taps.push((t.tap, source, target));
         }
-        Some(Self { num_tokens: n, num_groups: g, group_entries, taps })
+        Some(Self {
+            num_tokens: n,
+            num_groups: g,
+            group_entries,
+            taps,
+        })
     }
 }
+
+/// Weight gradients `[C_out, C_in]` of some taps, with the tap index.
+type TapGrads = Vec<(usize, Vec<f32>)>;
 
 /// Gradients of one submanifold conv.
 #[derive(Debug, Clone, PartialEq)]
@@ -83,7 +96,14 @@ pub struct ConvGrads {
 ///
 /// `x` `[N, C_in]`, `g` `[N, C_out]`, `weight` `[C_out, 27, C_in]` (KRSC), all row-major.
 /// `None` when a length does not match the tables or the channels.
-pub fn subm_conv_backward(x: &[f32], g: &[f32], weight: &[f32], c_in: usize, c_out: usize, tables: &HostConvTables) -> Option<ConvGrads> {
+pub fn subm_conv_backward(
+    x: &[f32],
+    g: &[f32],
+    weight: &[f32],
+    c_in: usize,
+    c_out: usize,
+    tables: &HostConvTables,
+) -> Option<ConvGrads> {
     let n = tables.num_tokens;
     if x.len() != n * c_in || g.len() != n * c_out || weight.len() != c_out * NUM_TAPS * c_in {
         return None;
@@ -105,37 +125,47 @@ pub fn subm_conv_backward(x: &[f32], g: &[f32], weight: &[f32], c_in: usize, c_o
             *b += v;
         }
     }
-    // per tap: its weight gradient; per worker: an accumulator of d X_ext
-    let (d_ext, tap_grads) = tables
+    // per tap: its weight gradient; per group of consecutive taps: an accumulator of d X_ext.
+    // The groups are fixed by the tap list and the thread count (not by rayon's scheduling) and
+    // added in order, so a step is reproducible (exact resume, docs/training.md).
+    let groups = rayon::current_num_threads().clamp(1, tables.taps.len().max(1));
+    let per_group = tables.taps.len().div_ceil(groups).max(1);
+    let partial: Vec<(Vec<f32>, TapGrads)> = tables
         .taps
-        .par_iter()
-        .fold(
-            || (vec![0.0f32; rows_ext * c_in], Vec::new()),
-            |(mut acc, mut dws), (tap, source, target)| {
-                dws.push((*tap, tap_backward(&x_ext, g, weight, c_in, c_out, *tap, source, target, &mut acc)));
-                (acc, dws)
-            },
-        )
-        .reduce(
-            || (Vec::new(), Vec::new()),
-            |(a, mut da), (b, db)| {
-                da.extend(db);
-                let sum = if a.is_empty() {
-                    b
-                } else if b.is_empty() {
-                    a
-                } else {
-                    a.into_iter().zip(b).map(|(u, v)| u + v).collect()
-                };
-                (sum, da)
-            },
-        );
+        .par_chunks(per_group)
+        .map(|taps| {
+            let mut acc = vec![0.0f32; rows_ext * c_in];
+            let dws = taps
+                .iter()
+                .map(|(tap, source, target)| {
+                    let dw = tap_backward(
+                        &x_ext, g, weight, c_in, c_out, *tap, source, target, &mut acc,
+                    );
+                    (*tap, dw)
+                })
+                .collect::<Vec<_>>();
+            (acc, dws)
+        })
+        .collect();
+    let mut d_ext: Vec<f32> = Vec::new();
+    let mut tap_grads = Vec::with_capacity(tables.taps.len());
+    for (acc, dws) in partial {
+        if d_ext.is_empty() {
+            d_ext = acc;
+        } else {
+            d_ext.iter_mut().zip(&acc).for_each(|(a, v)| *a += v);
+        }
+        tap_grads.extend(dws);
+    }
     let mut d_weight = vec![0.0f32; weight.len()];
     for (tap, dw) in tap_grads {
         // dw [C_out, C_in] -> rows o, block tap of the KRSC layout (taps appear once)
         for o in 0..c_out {
             let dst = o * NUM_TAPS * c_in + tap * c_in;
-            for (acc, v) in d_weight[dst..dst + c_in].iter_mut().zip(&dw[o * c_in..(o + 1) * c_in]) {
+            for (acc, v) in d_weight[dst..dst + c_in]
+                .iter_mut()
+                .zip(&dw[o * c_in..(o + 1) * c_in])
+            {
                 *acc += v;
             }
         }
@@ -150,18 +180,36 @@ pub fn subm_conv_backward(x: &[f32], g: &[f32], weight: &[f32], c_in: usize, c_o
             }
         }
     }
-    Some(ConvGrads { weight: d_weight, bias, input })
+    Some(ConvGrads {
+        weight: d_weight,
+        bias,
+        input,
+    })
 }
 
 /// One tap: returns `d W_f` `[C_out, C_in]` and adds `g[target] W_f` into `acc[source]`.
 #[allow(clippy::too_many_arguments)]
-fn tap_backward(x_ext: &[f32], g: &[f32], weight: &[f32], c_in: usize, c_out: usize, tap: usize, source: &[usize], target: &[usize], acc: &mut [f32]) -> Vec<f32> {
+fn tap_backward(
+    x_ext: &[f32],
+    g: &[f32],
+    weight: &[f32],
+    c_in: usize,
+    c_out: usize,
+    tap: usize,
+    source: &[usize],
+    target: &[usize],
+    acc: &mut [f32],
+) -> Vec<f32> {
     let mut dw = vec![0.0f32; c_out * c_in];
     let mut xs = vec![0.0f32; PAIR_BLOCK.min(source.len()) * c_in];
     let mut gs = vec![0.0f32; PAIR_BLOCK.min(source.len()) * c_out];
     let mut dx = vec![0.0f32; PAIR_BLOCK.min(source.len()) * c_in];
     let w_f = weight.as_ptr().wrapping_add(tap * c_in);
-    for (b, (src, tgt)) in source.chunks(PAIR_BLOCK).zip(target.chunks(PAIR_BLOCK)).enumerate() {
+    for (b, (src, tgt)) in source
+        .chunks(PAIR_BLOCK)
+        .zip(target.chunks(PAIR_BLOCK))
+        .enumerate()
+    {
         let len = src.len();
         for (p, (&s, &t)) in src.iter().zip(tgt).enumerate() {
             xs[p * c_in..(p + 1) * c_in].copy_from_slice(&x_ext[s * c_in..(s + 1) * c_in]);
@@ -172,23 +220,54 @@ fn tap_backward(x_ext: &[f32], g: &[f32], weight: &[f32], c_in: usize, c_out: us
         unsafe {
             // d W_f [C_out, C_in] (+)= gsᵀ [C_out, len] · xs [len, C_in]
             gemm::gemm(
-                c_out, c_in, len,
-                dw.as_mut_ptr(), 1, c_in as isize, b > 0,
-                gs.as_ptr(), c_out as isize, 1,
-                xs.as_ptr(), 1, c_in as isize,
-                1.0f32, 1.0f32, false, false, false, gemm::Parallelism::None,
+                c_out,
+                c_in,
+                len,
+                dw.as_mut_ptr(),
+                1,
+                c_in as isize,
+                b > 0,
+                gs.as_ptr(),
+                c_out as isize,
+                1,
+                xs.as_ptr(),
+                1,
+                c_in as isize,
+                1.0f32,
+                1.0f32,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
             );
             // dx [len, C_in] = gs [len, C_out] · W_f [C_out, C_in]
             gemm::gemm(
-                len, c_in, c_out,
-                dx.as_mut_ptr(), 1, c_in as isize, false,
-                gs.as_ptr(), 1, c_out as isize,
-                w_f, 1, (NUM_TAPS * c_in) as isize,
-                0.0f32, 1.0f32, false, false, false, gemm::Parallelism::None,
+                len,
+                c_in,
+                c_out,
+                dx.as_mut_ptr(),
+                1,
+                c_in as isize,
+                false,
+                gs.as_ptr(),
+                1,
+                c_out as isize,
+                w_f,
+                1,
+                (NUM_TAPS * c_in) as isize,
+                0.0f32,
+                1.0f32,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
             );
         }
         for (p, &s) in src.iter().enumerate() {
-            for (a, v) in acc[s * c_in..(s + 1) * c_in].iter_mut().zip(&dx[p * c_in..(p + 1) * c_in]) {
+            for (a, v) in acc[s * c_in..(s + 1) * c_in]
+                .iter_mut()
+                .zip(&dx[p * c_in..(p + 1) * c_in])
+            {
                 *a += v;
             }
         }
@@ -201,7 +280,14 @@ mod tests {
     use super::*;
 
     /// The conv in f64 from the tables: `out[target] += W_f x_ext[source]`, plus the bias.
-    fn conv64(x: &[f64], weight: &[f64], bias: &[f64], c_in: usize, c_out: usize, t: &HostConvTables) -> Vec<f64> {
+    fn conv64(
+        x: &[f64],
+        weight: &[f64],
+        bias: &[f64],
+        c_in: usize,
+        c_out: usize,
+        t: &HostConvTables,
+    ) -> Vec<f64> {
         let n = t.num_tokens;
         let mut x_ext = x.to_vec();
         x_ext.resize((n + t.num_groups) * c_in, 0.0);
@@ -214,7 +300,9 @@ mod tests {
         for (tap, source, target) in &t.taps {
             for (&s, &r) in source.iter().zip(target) {
                 for o in 0..c_out {
-                    out[r * c_out + o] += (0..c_in).map(|i| weight[o * NUM_TAPS * c_in + tap * c_in + i] * x_ext[s * c_in + i]).sum::<f64>();
+                    out[r * c_out + o] += (0..c_in)
+                        .map(|i| weight[o * NUM_TAPS * c_in + tap * c_in + i] * x_ext[s * c_in + i])
+                        .sum::<f64>();
                 }
             }
         }
@@ -234,7 +322,11 @@ mod tests {
             num_tokens: n,
             num_groups: 1,
             group_entries: vec![(0, 0), (2, 0)],
-            taps: vec![(13, full.clone(), full), (4, sparse_src, sparse_tgt), (26, vec![n, 1], vec![1, 3])],
+            taps: vec![
+                (13, full.clone(), full),
+                (4, sparse_src, sparse_tgt),
+                (26, vec![n, 1], vec![1, 3]),
+            ],
         }
     }
 
@@ -249,7 +341,13 @@ mod tests {
         let g = pseudo_random(n * c_out, 4);
         let got = subm_conv_backward(&x, &g, &w, c_in, c_out, &t).expect("lengths match");
         let f64s = |v: &[f32]| v.iter().map(|&a| f64::from(a)).collect::<Vec<f64>>();
-        let objective = |x: &[f64], w: &[f64], b: &[f64]| conv64(x, w, b, c_in, c_out, &t).iter().zip(&g).map(|(o, &gg)| o * f64::from(gg)).sum::<f64>();
+        let objective = |x: &[f64], w: &[f64], b: &[f64]| {
+            conv64(x, w, b, c_in, c_out, &t)
+                .iter()
+                .zip(&g)
+                .map(|(o, &gg)| o * f64::from(gg))
+                .sum::<f64>()
+        };
         let eps = 1e-6;
         let check = |which: usize, want_len: usize, got: &[f32]| {
             assert_eq!(got.len(), want_len);
@@ -257,12 +355,25 @@ mod tests {
                 let (mut xp, mut wp, mut bp) = (f64s(&x), f64s(&w), f64s(&b));
                 let (mut xm, mut wm, mut bm) = (xp.clone(), wp.clone(), bp.clone());
                 match which {
-                    0 => { xp[k] += eps; xm[k] -= eps; }
-                    1 => { wp[k] += eps; wm[k] -= eps; }
-                    _ => { bp[k] += eps; bm[k] -= eps; }
+                    0 => {
+                        xp[k] += eps;
+                        xm[k] -= eps;
+                    }
+                    1 => {
+                        wp[k] += eps;
+                        wm[k] -= eps;
+                    }
+                    _ => {
+                        bp[k] += eps;
+                        bm[k] -= eps;
+                    }
                 }
                 let fd = (objective(&xp, &wp, &bp) - objective(&xm, &wm, &bm)) / (2.0 * eps);
-                assert!((fd - f64::from(got[k])).abs() <= 1e-4 * fd.abs().max(1.0), "input {which} element {k}: {fd} vs {}", got[k]);
+                assert!(
+                    (fd - f64::from(got[k])).abs() <= 1e-4 * fd.abs().max(1.0),
+                    "input {which} element {k}: {fd} vs {}",
+                    got[k]
+                );
             }
         };
         check(0, n * c_in, &got.input);
@@ -277,16 +388,26 @@ mod tests {
     fn long_taps_are_blocked_without_changing_the_result() {
         let (n, c_in, c_out) = (PAIR_BLOCK + 37, 2, 3);
         let full: Vec<usize> = (0..n).collect();
-        let t = HostConvTables { num_tokens: n, num_groups: 0, group_entries: vec![], taps: vec![(13, full.clone(), full)] };
+        let t = HostConvTables {
+            num_tokens: n,
+            num_groups: 0,
+            group_entries: vec![],
+            taps: vec![(13, full.clone(), full)],
+        };
         let x = pseudo_random(n * c_in, 5);
         let w = pseudo_random(c_out * NUM_TAPS * c_in, 6);
         let g = pseudo_random(n * c_out, 7);
         let got = subm_conv_backward(&x, &g, &w, c_in, c_out, &t).expect("lengths match");
         for o in 0..c_out {
             for i in 0..c_in {
-                let want: f64 = (0..n).map(|p| f64::from(g[p * c_out + o]) * f64::from(x[p * c_in + i])).sum();
+                let want: f64 = (0..n)
+                    .map(|p| f64::from(g[p * c_out + o]) * f64::from(x[p * c_in + i]))
+                    .sum();
                 let v = f64::from(got.weight[o * NUM_TAPS * c_in + 13 * c_in + i]);
-                assert!((want - v).abs() <= 1e-4 * want.abs().max(1.0), "{want} vs {v}");
+                assert!(
+                    (want - v).abs() <= 1e-4 * want.abs().max(1.0),
+                    "{want} vs {v}"
+                );
             }
         }
     }

@@ -22,11 +22,17 @@ pub struct LinearBnGelu {
 impl LinearBnGelu {
     /// New layer with PyTorch-default initialisation (network.md §11.4).
     pub fn new(cfg: &GgptConfig, c_in: usize, c_out: usize, device: &Device) -> Self {
-        Self { linear: LinearConfig::new(c_in, c_out).init(device), norm: batch_norm(cfg, c_out, device) }
+        Self {
+            linear: LinearConfig::new(c_in, c_out).init(device),
+            norm: batch_norm(cfg, c_out, device),
+        }
     }
 
     /// `x [N, C_in] -> [N, C_out]`.
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        gelu(crate::norm::batch_norm_forward(&self.norm, self.linear.forward(x)))
+        gelu(crate::norm::batch_norm_forward(
+            &self.norm,
+            self.linear.forward(x),
+        ))
     }
 }

@@ -107,7 +107,10 @@ impl Ggpt {
         }
         for (s, stage) in self.dec.iter().enumerate() {
             out.push((format!("dec.{s}.up.proj.norm"), &stage.up.proj.norm));
-            out.push((format!("dec.{s}.up.proj_skip.norm"), &stage.up.proj_skip.norm));
+            out.push((
+                format!("dec.{s}.up.proj_skip.norm"),
+                &stage.up.proj_skip.norm,
+            ));
         }
         out
     }
@@ -115,23 +118,34 @@ impl Ggpt {
     /// Sets the drop probability of every block's drop path (`0` switches it off while the
     /// training flag stays on).
     pub fn set_drop_path(&mut self, prob: f64) {
-        for block in self.enc.iter_mut().flat_map(|s| s.blocks.iter_mut()).chain(self.dec.iter_mut().flat_map(|s| s.blocks.iter_mut())) {
+        for block in self
+            .enc
+            .iter_mut()
+            .flat_map(|s| s.blocks.iter_mut())
+            .chain(self.dec.iter_mut().flat_map(|s| s.blocks.iter_mut()))
+        {
             block.drop_path.prob = prob;
         }
     }
 
     /// A freshly initialised network (network.md §11.4) on `device`.
     pub fn new(cfg: &GgptConfig, device: &Device) -> Self {
-        let normal = Initializer::Normal { mean: 0.0, std: 1.0 };
+        let normal = Initializer::Normal {
+            mean: 0.0,
+            std: 1.0,
+        };
         let enc_rates = cfg.enc_drop_path_rates();
         let dec_rates = cfg.dec_drop_path_rates();
         let enc = (0..NUM_LEVELS)
             .map(|s| {
                 let c = cfg.enc_channels[s];
                 EncoderStage {
-                    down: (s > 0).then(|| SerializedPooling::new(cfg, cfg.enc_channels[s - 1], c, device)),
+                    down: (s > 0)
+                        .then(|| SerializedPooling::new(cfg, cfg.enc_channels[s - 1], c, device)),
                     blocks: (0..cfg.enc_depths[s])
-                        .map(|i| Block::new(cfg, c, cfg.enc_num_head[s], i, enc_rates[s][i], device))
+                        .map(|i| {
+                            Block::new(cfg, c, cfg.enc_num_head[s], i, enc_rates[s][i], device)
+                        })
                         .collect(),
                 }
             })
@@ -142,7 +156,9 @@ impl Ggpt {
                 DecoderStage {
                     up: Unpooling::new(cfg, cfg.dec_in_channels(s), cfg.enc_channels[s], c, device),
                     blocks: (0..cfg.dec_depths[s])
-                        .map(|i| Block::new(cfg, c, cfg.dec_num_head[s], i, dec_rates[s][i], device))
+                        .map(|i| {
+                            Block::new(cfg, c, cfg.dec_num_head[s], i, dec_rates[s][i], device)
+                        })
                         .collect(),
                 }
             })
@@ -153,7 +169,11 @@ impl Ggpt {
             embedding: LinearBnGelu::new(cfg, cfg.in_channels, cfg.enc_channels[0], device),
             enc,
             dec,
-            head: Head::new(cfg.dec_channels[0] + cfg.in_channels, cfg.head_width, device),
+            head: Head::new(
+                cfg.dec_channels[0] + cfg.in_channels,
+                cfg.head_width,
+                device,
+            ),
         }
     }
 
@@ -168,18 +188,30 @@ impl Ggpt {
         let program = Program::of(self);
         let mut slots: Vec<Option<Tensor<2>>> = vec![None; program.num_slots];
         let device = batch.coord.device();
-        let take = |slots: &mut Vec<Option<Tensor<2>>>, k: usize, inputs: &[usize]| -> Vec<Tensor<2>> {
-            let args: Vec<Tensor<2>> = inputs.iter().map(|&i| slots[i].clone().unwrap_or_else(|| Tensor::zeros([0, 0], &device))).collect();
-            for &i in inputs {
-                if program.last_use[i] == k {
-                    slots[i] = None;
+        let take =
+            |slots: &mut Vec<Option<Tensor<2>>>, k: usize, inputs: &[usize]| -> Vec<Tensor<2>> {
+                let args: Vec<Tensor<2>> = inputs
+                    .iter()
+                    .map(|&i| {
+                        slots[i]
+                            .clone()
+                            .unwrap_or_else(|| Tensor::zeros([0, 0], &device))
+                    })
+                    .collect();
+                for &i in inputs {
+                    if program.last_use[i] == k {
+                        slots[i] = None;
+                    }
                 }
-            }
-            args
-        };
+                args
+            };
         for (k, seg) in program.segments.iter().enumerate() {
             let args = take(&mut slots, k, &seg.inputs);
-            for (o, t) in seg.outputs.iter().zip(self.run_segment(batch, seg.op, &args, rec)) {
+            for (o, t) in seg
+                .outputs
+                .iter()
+                .zip(self.run_segment(batch, seg.op, &args, rec))
+            {
                 slots[*o] = Some(t);
             }
         }
@@ -196,13 +228,18 @@ impl GgptOutput {
         let conf = read_tensor_f32(&self.tokens_conf, "tokens_conf")?;
         let n = batch.num_tokens;
         if xyz.len() != 3 * n || conf.len() != n {
-            return Err(ModelError::Plan(format!("outputs have {} / {} values for {n} tokens", xyz.len(), conf.len())));
+            return Err(ModelError::Plan(format!(
+                "outputs have {} / {} values for {n} tokens",
+                xyz.len(),
+                conf.len()
+            )));
         }
         let mut out = Vec::with_capacity(batch.chunks.len());
         for span in &batch.chunks {
             let nb = span.num_tokens();
-            let tok_xyz: Vec<[f32; 3]> =
-                (span.start..span.start + nb).map(|t| [xyz[3 * t], xyz[3 * t + 1], xyz[3 * t + 2]]).collect();
+            let tok_xyz: Vec<[f32; 3]> = (span.start..span.start + nb)
+                .map(|t| [xyz[3 * t], xyz[3 * t + 1], xyz[3 * t + 2]])
+                .collect();
             let tok_conf = conf[span.start..span.start + nb].to_vec();
             let k = span.num_dense;
             let mut geo_pts = vec![[0.0f32; 3]; k];
@@ -229,7 +266,10 @@ impl GgptOutput {
 /// Reads a tensor back to the host as `Vec<f32>`. A failed device execution (e.g. a GPU buffer
 /// allocation above the device's limits or out of memory) becomes [`ModelError::Readback`]
 /// naming the tensor, with a hint to run smaller forwards, instead of a panic.
-pub fn read_tensor_f32<const D: usize>(t: &burn::tensor::Tensor<D>, name: &str) -> Result<Vec<f32>> {
+pub fn read_tensor_f32<const D: usize>(
+    t: &burn::tensor::Tensor<D>,
+    name: &str,
+) -> Result<Vec<f32>> {
     tensor_into_f32(t.clone(), name)
 }
 
@@ -251,5 +291,8 @@ pub fn read_f32(data: &burn::tensor::TensorData, name: &str) -> Result<Vec<f32>>
 fn data_into_f32(data: burn::tensor::TensorData, name: &str) -> Result<Vec<f32>> {
     data.convert::<f32>()
         .try_into_vec::<f32>()
-        .map_err(|e| ModelError::Readback { name: name.to_string(), message: format!("{e:?}") })
+        .map_err(|e| ModelError::Readback {
+            name: name.to_string(),
+            message: format!("{e:?}"),
+        })
 }

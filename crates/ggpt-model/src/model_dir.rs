@@ -28,12 +28,22 @@ const OTHER_WEIGHT_FILES: [&str; 3] = ["model.pth", "model.bpk", "model.step2280
 /// Folder name of the shipped model (under `models/` of the repository).
 pub const SHIPPED_MODEL_NAME: &str = "ggpt-synth-small";
 /// The shipped model folder in the source tree this crate was built from.
-const SOURCE_TREE_MODEL_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/ggpt-synth-small");
+const SOURCE_TREE_MODEL_DIR: &str =
+    concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/ggpt-synth-small");
 /// The shipped model's files, embedded at build time (2.5 MB).
 const SHIPPED_FILES: [(&str, &[u8]); 3] = [
-    (MODEL_WEIGHTS_FILE, include_bytes!("../../../models/ggpt-synth-small/model.safetensors")),
-    (MODEL_CONFIG_FILE, include_bytes!("../../../models/ggpt-synth-small/model_config.json")),
-    (INFERENCE_SETTINGS_FILE, include_bytes!("../../../models/ggpt-synth-small/inference.json")),
+    (
+        MODEL_WEIGHTS_FILE,
+        include_bytes!("../../../models/ggpt-synth-small/model.safetensors"),
+    ),
+    (
+        MODEL_CONFIG_FILE,
+        include_bytes!("../../../models/ggpt-synth-small/model_config.json"),
+    ),
+    (
+        INFERENCE_SETTINGS_FILE,
+        include_bytes!("../../../models/ggpt-synth-small/inference.json"),
+    ),
 ];
 
 /// The shipped model folder, found in this order:
@@ -46,9 +56,21 @@ const SHIPPED_FILES: [(&str, &[u8]); 3] = [
 ///
 /// A folder counts only when it holds the same files as the embedded model.
 pub fn shipped_model_dir() -> Result<PathBuf> {
-    let beside_exe = std::env::current_exe().ok().and_then(|exe| exe.parent().map(|d| d.join("models").join(SHIPPED_MODEL_NAME)));
-    let candidates: Vec<PathBuf> = beside_exe.into_iter().chain([PathBuf::from(SOURCE_TREE_MODEL_DIR)]).collect();
-    find_or_extract_shipped(&candidates, &cache_root().join("ggpt-rs").join(env!("CARGO_PKG_VERSION")).join(SHIPPED_MODEL_NAME))
+    let beside_exe = std::env::current_exe().ok().and_then(|exe| {
+        exe.parent()
+            .map(|d| d.join("models").join(SHIPPED_MODEL_NAME))
+    });
+    let candidates: Vec<PathBuf> = beside_exe
+        .into_iter()
+        .chain([PathBuf::from(SOURCE_TREE_MODEL_DIR)])
+        .collect();
+    find_or_extract_shipped(
+        &candidates,
+        &cache_root()
+            .join("ggpt-rs")
+            .join(env!("CARGO_PKG_VERSION"))
+            .join(SHIPPED_MODEL_NAME),
+    )
 }
 
 /// The first of `candidates` that holds the shipped model, else `extract_to` after writing the
@@ -60,8 +82,12 @@ fn find_or_extract_shipped(candidates: &[PathBuf], extract_to: &Path) -> Result<
     if !holds_shipped_files(extract_to) {
         for (name, bytes) in SHIPPED_FILES {
             let path = extract_to.join(name);
-            ggpt_core::io::atomic::write_bytes_atomic(&path, bytes)
-                .map_err(|e| ModelError::Missing { what: format!("shipped model (writing the embedded copy failed: {e})"), path: path.clone() })?;
+            ggpt_core::io::atomic::write_bytes_atomic(&path, bytes).map_err(|e| {
+                ModelError::Missing {
+                    what: format!("shipped model (writing the embedded copy failed: {e})"),
+                    path: path.clone(),
+                }
+            })?;
         }
         tracing::info!("shipped model written to {}", extract_to.display());
     }
@@ -70,13 +96,21 @@ fn find_or_extract_shipped(candidates: &[PathBuf], extract_to: &Path) -> Result<
 
 /// Whether `dir` holds the embedded shipped model's files, byte for byte.
 fn holds_shipped_files(dir: &Path) -> bool {
-    SHIPPED_FILES.iter().all(|(name, bytes)| std::fs::read(dir.join(name)).is_ok_and(|b| b == *bytes))
+    SHIPPED_FILES
+        .iter()
+        .all(|(name, bytes)| std::fs::read(dir.join(name)).is_ok_and(|b| b == *bytes))
 }
 
 /// The user cache directory (`$XDG_CACHE_HOME`, else `$HOME/.cache`, else the temporary one).
 fn cache_root() -> PathBuf {
-    let env_dir = |k: &str| std::env::var_os(k).filter(|v| !v.is_empty()).map(PathBuf::from);
-    env_dir("XDG_CACHE_HOME").or_else(|| env_dir("HOME").map(|h| h.join(".cache"))).unwrap_or_else(std::env::temp_dir)
+    let env_dir = |k: &str| {
+        std::env::var_os(k)
+            .filter(|v| !v.is_empty())
+            .map(PathBuf::from)
+    };
+    env_dir("XDG_CACHE_HOME")
+        .or_else(|| env_dir("HOME").map(|h| h.join(".cache")))
+        .unwrap_or_else(std::env::temp_dir)
 }
 
 /// Where the model configuration came from.
@@ -106,7 +140,9 @@ impl ModelSpec {
     /// The model layer of the chunk-sampler resolution: the `inference.json` path and its
     /// `chunking` object (`None` without the file).
     pub fn chunking_layer(&self) -> Option<(&Path, Option<&ChunkingSettings>)> {
-        self.inference.as_ref().map(|m| (m.path.as_path(), m.settings.chunking.as_ref()))
+        self.inference
+            .as_ref()
+            .map(|m| (m.path.as_path(), m.settings.chunking.as_ref()))
     }
 }
 
@@ -130,7 +166,10 @@ pub struct ModelInferenceSettings {
 /// Reads and validates an `inference.json` file; every problem is a [`ModelError::Settings`]
 /// naming the file.
 pub fn read_inference_settings(path: &Path) -> Result<InferenceSettings> {
-    let err = |message: String| ModelError::Settings { path: path.to_path_buf(), message };
+    let err = |message: String| ModelError::Settings {
+        path: path.to_path_buf(),
+        message,
+    };
     let text = std::fs::read_to_string(path).map_err(|e| err(format!("cannot read: {e}")))?;
     let settings: InferenceSettings = serde_json::from_str(&text).map_err(|e| {
         let kind = if e.is_data() { "invalid settings" } else { "malformed JSON" };
@@ -145,7 +184,11 @@ pub fn read_inference_settings(path: &Path) -> Result<InferenceSettings> {
 /// Resolves `weights` (a file, or a model folder holding `model.safetensors`) and the
 /// configuration: `model_config` file, else `preset`, else `model_config.json` next to the
 /// weights. Missing files give [`ModelError::Missing`] naming the path.
-pub fn resolve_model(weights: &Path, model_config: Option<&Path>, preset: Option<&str>) -> Result<ModelSpec> {
+pub fn resolve_model(
+    weights: &Path,
+    model_config: Option<&Path>,
+    preset: Option<&str>,
+) -> Result<ModelSpec> {
     let weights = if weights.is_dir() {
         std::iter::once(MODEL_WEIGHTS_FILE)
             .chain(OTHER_WEIGHT_FILES)
@@ -158,21 +201,35 @@ pub fn resolve_model(weights: &Path, model_config: Option<&Path>, preset: Option
     } else if weights.is_file() {
         weights.to_path_buf()
     } else {
-        return Err(ModelError::Missing { what: "weights".into(), path: weights.to_path_buf() });
+        return Err(ModelError::Missing {
+            what: "weights".into(),
+            path: weights.to_path_buf(),
+        });
     };
     let (config, origin) = match (model_config, preset) {
         (Some(path), _) => {
             if !path.is_file() {
-                return Err(ModelError::Missing { what: "model configuration".into(), path: path.to_path_buf() });
+                return Err(ModelError::Missing {
+                    what: "model configuration".into(),
+                    path: path.to_path_buf(),
+                });
             }
-            (GgptConfig::from_json_file(path)?, ConfigOrigin::File(path.to_path_buf()))
+            (
+                GgptConfig::from_json_file(path)?,
+                ConfigOrigin::File(path.to_path_buf()),
+            )
         }
-        (None, Some(name)) => (GgptConfig::preset(name)?, ConfigOrigin::Preset(name.to_string())),
+        (None, Some(name)) => (
+            GgptConfig::preset(name)?,
+            ConfigOrigin::Preset(name.to_string()),
+        ),
         (None, None) => {
             let path = weights.with_file_name(MODEL_CONFIG_FILE);
             if !path.is_file() {
                 return Err(ModelError::Missing {
-                    what: format!("model configuration (give --model-config FILE or --preset released|small|tiny, or put {MODEL_CONFIG_FILE} next to the weights)"),
+                    what: format!(
+                        "model configuration (give --model-config FILE or --preset released|small|tiny, or put {MODEL_CONFIG_FILE} next to the weights)"
+                    ),
                     path,
                 });
             }
@@ -182,11 +239,19 @@ pub fn resolve_model(weights: &Path, model_config: Option<&Path>, preset: Option
     let settings_path = weights.with_file_name(INFERENCE_SETTINGS_FILE);
     let inference = if settings_path.is_file() {
         let settings = read_inference_settings(&settings_path)?;
-        Some(ModelInferenceSettings { path: settings_path, settings })
+        Some(ModelInferenceSettings {
+            path: settings_path,
+            settings,
+        })
     } else {
         None
     };
-    Ok(ModelSpec { weights, config, origin, inference })
+    Ok(ModelSpec {
+        weights,
+        config,
+        origin,
+        inference,
+    })
 }
 
 /// Builds the network on `device` and loads the weights strictly.
@@ -201,19 +266,36 @@ mod tests {
     #[test]
     fn resolves_folder_config_and_reports_missing_files() {
         let dir = tempfile::tempdir().unwrap();
-        let e = resolve_model(&dir.path().join("nope.safetensors"), None, Some("tiny")).unwrap_err().to_string();
-        assert!(e.contains("weights not found") && e.contains("nope.safetensors"), "{e}");
-        let e = resolve_model(dir.path(), None, Some("tiny")).unwrap_err().to_string();
+        let e = resolve_model(&dir.path().join("nope.safetensors"), None, Some("tiny"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("weights not found") && e.contains("nope.safetensors"),
+            "{e}"
+        );
+        let e = resolve_model(dir.path(), None, Some("tiny"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("model.safetensors"), "{e}");
         let w = dir.path().join(MODEL_WEIGHTS_FILE);
         std::fs::write(&w, b"x").unwrap();
         let spec = resolve_model(dir.path(), None, Some("tiny")).unwrap();
         assert_eq!(spec.weights, w);
         assert_eq!(spec.origin, ConfigOrigin::Preset("tiny".into()));
-        let e = resolve_model(dir.path(), None, None).unwrap_err().to_string();
-        assert!(e.contains("model_config.json") && e.contains("--model-config"), "{e}");
-        let e = resolve_model(&w, Some(&dir.path().join("c.json")), None).unwrap_err().to_string();
-        assert!(e.contains("model configuration not found") && e.contains("c.json"), "{e}");
+        let e = resolve_model(dir.path(), None, None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("model_config.json") && e.contains("--model-config"),
+            "{e}"
+        );
+        let e = resolve_model(&w, Some(&dir.path().join("c.json")), None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("model configuration not found") && e.contains("c.json"),
+            "{e}"
+        );
         assert!(resolve_model(&w, None, Some("huge")).is_err());
     }
 
@@ -223,7 +305,10 @@ mod tests {
         assert!(holds_shipped_files(&dir), "{}", dir.display());
         let spec = resolve_model(&dir, None, None).unwrap();
         assert_eq!(spec.weights, dir.join(MODEL_WEIGHTS_FILE));
-        assert!(spec.inference.is_some(), "the shipped model has an inference.json");
+        assert!(
+            spec.inference.is_some(),
+            "the shipped model has an inference.json"
+        );
         // An incomplete or stale folder does not count.
         let tmp = tempfile::tempdir().unwrap();
         assert!(!holds_shipped_files(tmp.path()));
@@ -239,7 +324,12 @@ mod tests {
         let got = find_or_extract_shipped(&[tmp.path().to_path_buf()], &cache).unwrap();
         assert_eq!(got, cache);
         assert!(holds_shipped_files(&cache));
-        assert!(resolve_model(&cache, None, None).unwrap().inference.is_some());
+        assert!(
+            resolve_model(&cache, None, None)
+                .unwrap()
+                .inference
+                .is_some()
+        );
         std::fs::write(cache.join(MODEL_WEIGHTS_FILE), b"truncated").unwrap();
         find_or_extract_shipped(&[], &cache).unwrap();
         assert!(holds_shipped_files(&cache), "a stale copy is rewritten");
@@ -249,7 +339,7 @@ mod tests {
             std::fs::create_dir_all(&exe_dir).unwrap();
             std::fs::write(exe_dir.join(name), bytes).unwrap();
         }
-        let got = find_or_extract_shipped(&[exe_dir.clone()], &cache).unwrap();
+        let got = find_or_extract_shipped(std::slice::from_ref(&exe_dir), &cache).unwrap();
         assert_eq!(got, std::fs::canonicalize(&exe_dir).unwrap());
     }
 
@@ -266,13 +356,34 @@ mod tests {
     fn bad_inference_json_gives_clear_errors() {
         let dir = tempfile::tempdir().unwrap();
         let cases = [
-            ("{\"chunking\": {\"max_pixels\": 10000,}}", "malformed JSON: trailing comma"),
-            (r#"{"chunking": {"max_pixel": 10000}}"#, "invalid settings: unknown field `max_pixel`"),
-            (r#"{"chunking": {}, "fusion": "mean"}"#, "unknown field `fusion`"),
-            (r#"{"chunking": {"max_pixels": -5}}"#, "invalid settings: invalid value: integer `-5`"),
-            (r#"{"chunking": {"chunk_size": "0.2"}}"#, "invalid settings: invalid type: string"),
-            (r#"{"chunking": {"chunk_size": 0}}"#, "chunking.chunk_size = 0"),
-            (r#"{"chunking": {"max_pixels": 0}}"#, "chunking.max_pixels = 0"),
+            (
+                "{\"chunking\": {\"max_pixels\": 10000,}}",
+                "malformed JSON: trailing comma",
+            ),
+            (
+                r#"{"chunking": {"max_pixel": 10000}}"#,
+                "invalid settings: unknown field `max_pixel`",
+            ),
+            (
+                r#"{"chunking": {}, "fusion": "mean"}"#,
+                "unknown field `fusion`",
+            ),
+            (
+                r#"{"chunking": {"max_pixels": -5}}"#,
+                "invalid settings: invalid value: integer `-5`",
+            ),
+            (
+                r#"{"chunking": {"chunk_size": "0.2"}}"#,
+                "invalid settings: invalid type: string",
+            ),
+            (
+                r#"{"chunking": {"chunk_size": 0}}"#,
+                "chunking.chunk_size = 0",
+            ),
+            (
+                r#"{"chunking": {"max_pixels": 0}}"#,
+                "chunking.max_pixels = 0",
+            ),
             (r#"[1, 2]"#, "invalid settings"),
             ("", "malformed JSON"),
         ];
@@ -280,13 +391,23 @@ mod tests {
             let e = spec_with(dir.path(), Some(text)).unwrap_err();
             assert!(matches!(e, ModelError::Settings { .. }), "{text}: {e:?}");
             let e = e.to_string();
-            assert!(e.contains(want) && e.contains("inference.json") && e.contains(&dir.path().display().to_string()), "{text}: {e}");
+            assert!(
+                e.contains(want)
+                    && e.contains("inference.json")
+                    && e.contains(&dir.path().display().to_string()),
+                "{text}: {e}"
+            );
         }
         // Next to a weights file given directly, too.
         let w = dir.path().join("weights.bpk");
         std::fs::write(&w, b"x").unwrap();
-        let e = resolve_model(&w, None, Some("tiny")).unwrap_err().to_string();
-        assert!(e.contains("inference.json") && e.contains("malformed JSON"), "{e}");
+        let e = resolve_model(&w, None, Some("tiny"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("inference.json") && e.contains("malformed JSON"),
+            "{e}"
+        );
         std::fs::remove_file(dir.path().join(INFERENCE_SETTINGS_FILE)).unwrap();
         let spec = resolve_model(&w, None, Some("tiny")).unwrap();
         assert!(spec.inference.is_none());

@@ -38,12 +38,17 @@ pub fn without_running_updates<R>(f: impl FnOnce() -> R) -> R {
 
 /// A BatchNorm over `channels` with eps / momentum from the config.
 pub fn batch_norm(cfg: &GgptConfig, channels: usize, device: &Device) -> BatchNorm {
-    BatchNormConfig::new(channels).with_epsilon(cfg.bn_eps).with_momentum(cfg.bn_momentum).init(device)
+    BatchNormConfig::new(channels)
+        .with_epsilon(cfg.bn_eps)
+        .with_momentum(cfg.bn_momentum)
+        .init(device)
 }
 
 /// An affine LayerNorm over the last axis (`channels`), eps from the config, biased variance.
 pub fn layer_norm(cfg: &GgptConfig, channels: usize, device: &Device) -> LayerNorm {
-    LayerNormConfig::new(channels).with_epsilon(cfg.ln_eps).init(device)
+    LayerNormConfig::new(channels)
+        .with_epsilon(cfg.ln_eps)
+        .init(device)
 }
 
 /// `ln` (epsilon `eps`, the one it was built with) applied to `x [N, C]`. Without a graph (`x`
@@ -52,7 +57,9 @@ pub fn layer_norm(cfg: &GgptConfig, channels: usize, device: &Device) -> LayerNo
 /// dozen single-threaded element-wise ops; the result goes back onto the autodiff device. The
 /// graph-free training forward of [`crate::recompute`] takes this path.
 pub fn layer_norm_forward(ln: &LayerNorm, eps: f64, x: Tensor<2>) -> Tensor<2> {
-    let tracked = x.is_tracked() || ln.gamma.val().is_tracked() || ln.beta.as_ref().is_some_and(|b| b.val().is_tracked());
+    let tracked = x.is_tracked()
+        || ln.gamma.val().is_tracked()
+        || ln.beta.as_ref().is_some_and(|b| b.val().is_tracked());
     if tracked || !x.device().is_autodiff() {
         return ln.forward(x);
     }
@@ -78,11 +85,23 @@ pub fn batch_norm_forward(bn: &BatchNorm, x: Tensor<2>) -> Tensor<2> {
     }
     let device = r.output.device();
     let m = bn.momentum;
-    let unbias = if n > 1 { n as f64 / (n - 1) as f64 } else { 1.0 };
+    let unbias = if n > 1 {
+        n as f64 / (n - 1) as f64
+    } else {
+        1.0
+    };
     let mean = bn.running_mean.value_sync().to_device(&device);
     let var = bn.running_var.value_sync().to_device(&device);
-    bn.running_mean.update(mean.mul_scalar(1.0 - m).add(r.mean.detach().mul_scalar(m)).detach());
-    bn.running_var.update(var.mul_scalar(1.0 - m).add(r.variance.detach().mul_scalar(m * unbias)).detach());
+    bn.running_mean.update(
+        mean.mul_scalar(1.0 - m)
+            .add(r.mean.detach().mul_scalar(m))
+            .detach(),
+    );
+    bn.running_var.update(
+        var.mul_scalar(1.0 - m)
+            .add(r.variance.detach().mul_scalar(m * unbias))
+            .detach(),
+    );
     r.output
 }
 
@@ -93,17 +112,32 @@ mod tests {
 
     #[test]
     fn running_variance_is_updated_with_the_unbiased_batch_variance() {
-        let device = crate::device::device_from_name("ndarray").unwrap().autodiff();
+        let device = crate::device::device_from_name("ndarray")
+            .unwrap()
+            .autodiff();
         let bn = BatchNormConfig::new(1).with_momentum(0.5).init(&device);
         let x = Tensor::<2>::from_data(TensorData::new(vec![1.0f32, 3.0], [2, 1]), &device);
         let y = batch_norm_forward(&bn, x);
-        let mean: Vec<f32> = bn.running_mean.value_sync().into_data().try_to_vec::<f32>().unwrap();
-        let var: Vec<f32> = bn.running_var.value_sync().into_data().try_to_vec::<f32>().unwrap();
+        let mean: Vec<f32> = bn
+            .running_mean
+            .value_sync()
+            .into_data()
+            .try_to_vec::<f32>()
+            .unwrap();
+        let var: Vec<f32> = bn
+            .running_var
+            .value_sync()
+            .into_data()
+            .try_to_vec::<f32>()
+            .unwrap();
         // batch mean 2, biased variance 1, unbiased 2: 0.5 * 0 + 0.5 * 2 and 0.5 * 1 + 0.5 * 2
         assert_eq!(mean, vec![1.0]);
         assert_eq!(var, vec![1.5]);
         let out: Vec<f32> = y.into_data().try_to_vec::<f32>().unwrap();
         let want = 1.0 / (1.0f32 + 1e-5).sqrt();
-        assert!((out[0] + want).abs() < 1e-6 && (out[1] - want).abs() < 1e-6, "{out:?}");
+        assert!(
+            (out[0] + want).abs() < 1e-6 && (out[1] - want).abs() < 1e-6,
+            "{out:?}"
+        );
     }
 }

@@ -9,7 +9,11 @@ pub(crate) fn index_tensor(values: &[usize], device: &Device) -> Tensor<1, Int> 
 }
 
 /// Uploads host f32 values as a tensor of the given shape.
-pub(crate) fn float_tensor<const D: usize>(values: Vec<f32>, shape: [usize; D], device: &Device) -> Tensor<D> {
+pub(crate) fn float_tensor<const D: usize>(
+    values: Vec<f32>,
+    shape: [usize; D],
+    device: &Device,
+) -> Tensor<D> {
     Tensor::from_data(TensorData::new(values, shape), device)
 }
 
@@ -24,7 +28,13 @@ pub fn is_cpu_device(device: &Device) -> bool {
 /// entry is negative (the host kernels' tables: [`crate::attention::HostAttnIndex`],
 /// [`crate::host_conv_grad::HostConvTables`]).
 pub(crate) fn read_indices(t: &Tensor<1, Int>) -> Option<Vec<usize>> {
-    let v = t.clone().try_into_data().ok()?.convert::<i64>().try_to_vec::<i64>().ok()?;
+    let v = t
+        .clone()
+        .try_into_data()
+        .ok()?
+        .convert::<i64>()
+        .try_to_vec::<i64>()
+        .ok()?;
     v.into_iter().map(|x| usize::try_from(x).ok()).collect()
 }
 
@@ -51,7 +61,11 @@ pub const ROW_BLOCK_BUDGET_FLOATS: usize = 16 * 1024 * 1024;
 /// Applies a row-wise function `f` to `x [N, C]` in row blocks whose widest intermediate
 /// (`width` columns) stays below [`ROW_BLOCK_BUDGET_FLOATS`]; concatenates the results.
 /// Exact: `f` must act on every row independently.
-pub(crate) fn map_row_blocks(x: Tensor<2>, width: usize, f: impl Fn(Tensor<2>) -> Tensor<2>) -> Tensor<2> {
+pub(crate) fn map_row_blocks(
+    x: Tensor<2>,
+    width: usize,
+    f: impl Fn(Tensor<2>) -> Tensor<2>,
+) -> Tensor<2> {
     let [n, _] = x.dims();
     let rows = (ROW_BLOCK_BUDGET_FLOATS / width.max(1)).max(1);
     if n <= rows {

@@ -33,11 +33,20 @@ pub struct SerializedPooling {
 impl SerializedPooling {
     /// New pooling `C_in -> C_out`.
     pub fn new(cfg: &GgptConfig, c_in: usize, c_out: usize, device: &Device) -> Self {
-        Self { proj: LinearConfig::new(c_in, c_out).init(device), norm: batch_norm(cfg, c_out, device) }
+        Self {
+            proj: LinearConfig::new(c_in, c_out).init(device),
+            norm: batch_norm(cfg, c_out, device),
+        }
     }
 
     /// `x [N_{l-1}, C_in] -> [N_l, C_out]`; records `{name}.pooled`, `{name}.out`.
-    pub fn forward(&self, x: Tensor<2>, pool: &PoolIndex, rec: &mut Recorder, name: &str) -> Tensor<2> {
+    pub fn forward(
+        &self,
+        x: Tensor<2>,
+        pool: &PoolIndex,
+        rec: &mut Recorder,
+        name: &str,
+    ) -> Tensor<2> {
         let p = self.proj.forward(x);
         let [_, c] = p.dims();
         let pooled = gather_rows(p, pool.children.clone())

@@ -148,7 +148,10 @@ impl PreparedBatch {
         let tokens = &plan.tokens;
         let n = tokens.num_tokens;
         if plan.levels.len() != NUM_LEVELS {
-            return Err(ModelError::Plan(format!("{} levels, expected {NUM_LEVELS}", plan.levels.len())));
+            return Err(ModelError::Plan(format!(
+                "{} levels, expected {NUM_LEVELS}",
+                plan.levels.len()
+            )));
         }
         if tokens.feat_no_embed.len() != n * FEAT_NO_EMBED_DIM
             || tokens.is_dlt.len() != n
@@ -163,14 +166,26 @@ impl PreparedBatch {
             )));
         }
         let chunks = chunk_spans(plan)?;
-        let feat_no_embed = float_tensor(tokens.feat_no_embed.clone(), [n, FEAT_NO_EMBED_DIM], device);
+        let feat_no_embed =
+            float_tensor(tokens.feat_no_embed.clone(), [n, FEAT_NO_EMBED_DIM], device);
         let types: Vec<usize> = tokens.is_dlt.iter().map(|&d| usize::from(d)).collect();
         let type_index = index_tensor(&types, device);
-        let coord_flat: Vec<f32> = tokens.coord.iter().flat_map(|c| c.iter().copied()).collect();
+        let coord_flat: Vec<f32> = tokens
+            .coord
+            .iter()
+            .flat_map(|c| c.iter().copied())
+            .collect();
         let coord = float_tensor(coord_flat, [n, 3], device);
         let mut levels = Vec::with_capacity(NUM_LEVELS);
         for (l, level) in plan.levels.iter().enumerate() {
-            let expected = if l == 0 { Some(n) } else { plan.levels[l - 1].pool_to_next.as_ref().map(|p| p.num_coarse) };
+            let expected = if l == 0 {
+                Some(n)
+            } else {
+                plan.levels[l - 1]
+                    .pool_to_next
+                    .as_ref()
+                    .map(|p| p.num_coarse)
+            };
             if expected != Some(level.num_tokens) {
                 return Err(ModelError::Plan(format!(
                     "level {l} has {} tokens, previous level pools to {expected:?}",
@@ -182,7 +197,14 @@ impl PreparedBatch {
             }
             levels.push(prepare_level(l, level, device)?);
         }
-        Ok(Self { num_tokens: n, feat_no_embed, type_index, coord, levels, chunks })
+        Ok(Self {
+            num_tokens: n,
+            feat_no_embed,
+            type_index,
+            coord,
+            levels,
+            chunks,
+        })
     }
 }
 
@@ -193,8 +215,13 @@ fn chunk_spans(plan: &BatchPlan) -> Result<Vec<ChunkSpan>> {
     let mut expected_start = 0usize;
     for (b, lay) in plan.layout.iter().enumerate() {
         let end = lay.token_start + lay.num_dense + lay.num_dlt;
-        if lay.token_start != expected_start || end > tokens.num_tokens || plan.offsets.get(b) != Some(&end) {
-            return Err(ModelError::Plan(format!("chunk {b}: layout {lay:?} inconsistent with offsets")));
+        if lay.token_start != expected_start
+            || end > tokens.num_tokens
+            || plan.offsets.get(b) != Some(&end)
+        {
+            return Err(ModelError::Plan(format!(
+                "chunk {b}: layout {lay:?} inconsistent with offsets"
+            )));
         }
         let dlt_pixel = tokens
             .dlt_pixel
@@ -202,13 +229,23 @@ fn chunk_spans(plan: &BatchPlan) -> Result<Vec<ChunkSpan>> {
             .ok_or_else(|| ModelError::Plan(format!("chunk {b}: dlt_pixel too short")))?
             .to_vec();
         if let Some(&bad) = dlt_pixel.iter().find(|&&p| p >= lay.num_dense) {
-            return Err(ModelError::Plan(format!("chunk {b}: DLT pixel {bad} >= {} pixels", lay.num_dense)));
+            return Err(ModelError::Plan(format!(
+                "chunk {b}: DLT pixel {bad} >= {} pixels",
+                lay.num_dense
+            )));
         }
-        spans.push(ChunkSpan { start: lay.token_start, num_dense: lay.num_dense, dlt_pixel });
+        spans.push(ChunkSpan {
+            start: lay.token_start,
+            num_dense: lay.num_dense,
+            dlt_pixel,
+        });
         expected_start = end;
     }
     if expected_start != tokens.num_tokens {
-        return Err(ModelError::Plan(format!("chunks cover {expected_start} of {} tokens", tokens.num_tokens)));
+        return Err(ModelError::Plan(format!(
+            "chunks cover {expected_start} of {} tokens",
+            tokens.num_tokens
+        )));
     }
     Ok(spans)
 }
@@ -218,19 +255,41 @@ fn prepare_level(l: usize, level: &LevelPlan, device: &Device) -> Result<Prepare
     let conv = conv_index(l, n, &level.conv, device)?;
     let mut attn = Vec::with_capacity(4);
     for r in 0..4 {
-        attn.push(attn_index(l, r, n, &level.order[r], &level.windows, device)?);
+        attn.push(attn_index(
+            l,
+            r,
+            n,
+            &level.order[r],
+            &level.windows,
+            device,
+        )?);
     }
     let pool = match &level.pool_to_next {
         Some(p) => Some(pool_index(l, n, p, device)?),
         None => None,
     };
-    Ok(PreparedLevel { num_tokens: n, conv, attn, pool })
+    Ok(PreparedLevel {
+        num_tokens: n,
+        conv,
+        attn,
+        pool,
+    })
 }
 
+/// The host im2col index of [`conv_index_host`] (the parts of a [`ConvIndex`], in its order).
+pub type ConvIndexHost = (Vec<usize>, Vec<usize>, Vec<usize>, usize);
+
+/// The host attention index of [`attn_index_host`]: the gather groups
+/// `(token order, window length, windows)` and the scatter-back table.
+pub type AttnIndexHost = (Vec<(Vec<usize>, usize, usize)>, Vec<usize>);
+
 /// Builds the im2col index of network.md §6 (see [`ConvIndex`]).
-pub fn conv_index_host(n: usize, table: &ConvTable) -> std::result::Result<(Vec<usize>, Vec<usize>, Vec<usize>, usize), String> {
+pub fn conv_index_host(n: usize, table: &ConvTable) -> std::result::Result<ConvIndexHost, String> {
     if table.taps.len() != NUM_TAPS {
-        return Err(format!("{} conv taps, expected {NUM_TAPS}", table.taps.len()));
+        return Err(format!(
+            "{} conv taps, expected {NUM_TAPS}",
+            table.taps.len()
+        ));
     }
     // Placeholder for "no neighbour": fixed up to the zero row once G is known.
     const NONE: usize = usize::MAX;
@@ -241,7 +300,11 @@ pub fn conv_index_host(n: usize, table: &ConvTable) -> std::result::Result<(Vec<
     let mut group_slots: Vec<(usize, usize)> = Vec::new(); // (slot, group)
     for (f, tap) in table.taps.iter().enumerate() {
         if tap.target.len() != tap.source.len() {
-            return Err(format!("tap {f}: {} targets but {} sources", tap.target.len(), tap.source.len()));
+            return Err(format!(
+                "tap {f}: {} targets but {} sources",
+                tap.target.len(),
+                tap.source.len()
+            ));
         }
         // Pairs sorted by (target, source): runs of equal targets are the duplicate groups.
         let mut pairs: Vec<(usize, usize)> = Vec::with_capacity(tap.target.len());
@@ -296,7 +359,10 @@ fn conv_index(l: usize, n: usize, table: &ConvTable, device: &Device) -> Result<
     let (im2col, members, ids, num_groups) =
         conv_index_host(n, table).map_err(|e| ModelError::Plan(format!("level {l}: {e}")))?;
     let (group_members, group_ids) = if num_groups > 0 {
-        (Some(index_tensor(&members, device)), Some(index_tensor(&ids, device)))
+        (
+            Some(index_tensor(&members, device)),
+            Some(index_tensor(&ids, device)),
+        )
     } else {
         (None, None)
     };
@@ -328,7 +394,11 @@ fn conv_index(l: usize, n: usize, table: &ConvTable, device: &Device) -> Result<
             identity,
         });
     }
-    let occupancy = if n == 0 { 0.0 } else { occupied as f64 / (NUM_TAPS * n) as f64 };
+    let occupancy = if n == 0 {
+        0.0
+    } else {
+        occupied as f64 / (NUM_TAPS * n) as f64
+    };
     Ok(ConvIndex {
         num_tokens: n,
         im2col: index_tensor(&im2col, device),
@@ -345,13 +415,17 @@ pub fn attn_index_host(
     n: usize,
     order: &[usize],
     windows: &[Window],
-) -> std::result::Result<(Vec<(Vec<usize>, usize, usize)>, Vec<usize>), String> {
+) -> std::result::Result<AttnIndexHost, String> {
     if order.len() != n {
         return Err(format!("order has {} entries for {n} tokens", order.len()));
     }
     let mut by_len: BTreeMap<usize, Vec<&Window>> = BTreeMap::new();
     for w in windows {
-        if w.len == 0 || w.start + w.len > n || w.owned_from < w.start || w.owned_from + w.owned_len > w.start + w.len {
+        if w.len == 0
+            || w.start + w.len > n
+            || w.owned_from < w.start
+            || w.owned_from + w.owned_len > w.start + w.len
+        {
             return Err(format!("invalid window {w:?} for {n} tokens"));
         }
         by_len.entry(w.len).or_default().push(w);
@@ -365,8 +439,8 @@ pub fn attn_index_host(
         let mut gather = Vec::with_capacity(ws.len() * len);
         for w in ws {
             gather.extend_from_slice(&order[w.start..w.start + w.len]);
-            for p in w.owned_from..w.owned_from + w.owned_len {
-                let token = order[p];
+            let owned = &order[w.owned_from..w.owned_from + w.owned_len];
+            for (p, &token) in (w.owned_from..).zip(owned) {
                 if take[token] != NONE {
                     return Err(format!("token {token} owned by two windows"));
                 }
@@ -382,20 +456,37 @@ pub fn attn_index_host(
     Ok((groups, take))
 }
 
-fn attn_index(l: usize, r: usize, n: usize, order: &[usize], windows: &[Window], device: &Device) -> Result<AttnIndex> {
-    let (groups, take) =
-        attn_index_host(n, order, windows).map_err(|e| ModelError::Plan(format!("level {l} row {r}: {e}")))?;
+fn attn_index(
+    l: usize,
+    r: usize,
+    n: usize,
+    order: &[usize],
+    windows: &[Window],
+    device: &Device,
+) -> Result<AttnIndex> {
+    let (groups, take) = attn_index_host(n, order, windows)
+        .map_err(|e| ModelError::Plan(format!("level {l} row {r}: {e}")))?;
     let groups = groups
         .into_iter()
-        .map(|(gather, num_windows, len)| WindowGroup { gather: index_tensor(&gather, device), num_windows, len })
+        .map(|(gather, num_windows, len)| WindowGroup {
+            gather: index_tensor(&gather, device),
+            num_windows,
+            len,
+        })
         .collect();
-    Ok(AttnIndex { groups, take: index_tensor(&take, device) })
+    Ok(AttnIndex {
+        groups,
+        take: index_tensor(&take, device),
+    })
 }
 
 fn pool_index(l: usize, n: usize, p: &PoolMap, device: &Device) -> Result<PoolIndex> {
     let err = |m: String| ModelError::Plan(format!("level {l} pooling: {m}"));
     if p.cluster.len() != n {
-        return Err(err(format!("cluster has {} entries for {n} tokens", p.cluster.len())));
+        return Err(err(format!(
+            "cluster has {} entries for {n} tokens",
+            p.cluster.len()
+        )));
     }
     if p.children_width == 0 || p.children.len() != p.num_coarse * p.children_width {
         return Err(err(format!(
@@ -424,11 +515,29 @@ mod tests {
     #[test]
     fn im2col_groups_duplicate_sources() {
         // 3 tokens; tap 0: token 0 receives tokens 1 and 2 (a duplicated voxel); tap 26: 1 <- 0.
-        let mut taps = vec![TapPairs { target: vec![], source: vec![] }; NUM_TAPS];
-        taps[0] = TapPairs { target: vec![0, 0], source: vec![2, 1] };
-        taps[13] = TapPairs { target: vec![0, 1, 2], source: vec![0, 1, 2] };
-        taps[26] = TapPairs { target: vec![1], source: vec![0] };
-        let table = ConvTable { taps, has_duplicates: true };
+        let mut taps = vec![
+            TapPairs {
+                target: vec![],
+                source: vec![]
+            };
+            NUM_TAPS
+        ];
+        taps[0] = TapPairs {
+            target: vec![0, 0],
+            source: vec![2, 1],
+        };
+        taps[13] = TapPairs {
+            target: vec![0, 1, 2],
+            source: vec![0, 1, 2],
+        };
+        taps[26] = TapPairs {
+            target: vec![1],
+            source: vec![0],
+        };
+        let table = ConvTable {
+            taps,
+            has_duplicates: true,
+        };
         let (im2col, members, ids, g) = conv_index_host(3, &table).expect("valid");
         assert_eq!(g, 1);
         assert_eq!(members, vec![1, 2]);
@@ -436,7 +545,7 @@ mod tests {
         assert_eq!(im2col[0], 3); // group row
         assert_eq!(im2col[13], 0);
         assert_eq!(im2col[27 + 26], 0);
-        assert_eq!(im2col[27 + 0], 4); // zero row
+        assert_eq!(im2col[27], 4); // zero row
         assert_eq!(im2col[2 * 27 + 13], 2);
     }
 
@@ -445,15 +554,34 @@ mod tests {
         // n = 5, P = 4: windows [0,4) owning 0..4 and [1,5) owning 4.
         let order = vec![4, 3, 2, 1, 0];
         let windows = vec![
-            Window { start: 0, len: 4, owned_from: 0, owned_len: 4 },
-            Window { start: 1, len: 4, owned_from: 4, owned_len: 1 },
+            Window {
+                start: 0,
+                len: 4,
+                owned_from: 0,
+                owned_len: 4,
+            },
+            Window {
+                start: 1,
+                len: 4,
+                owned_from: 4,
+                owned_len: 1,
+            },
         ];
         let (groups, take) = attn_index_host(5, &order, &windows).expect("valid");
         assert_eq!(groups.len(), 1);
         assert_eq!(groups[0].0, vec![4, 3, 2, 1, 3, 2, 1, 0]);
         // token 0 sits at sorted position 4 -> window 1, slot 3 -> row 7
         assert_eq!(take, vec![7, 3, 2, 1, 0]);
-        let bad = vec![Window { start: 0, len: 4, owned_from: 0, owned_len: 4 }];
-        assert!(attn_index_host(5, &order, &bad).unwrap_err().contains("owned by no window"));
+        let bad = vec![Window {
+            start: 0,
+            len: 4,
+            owned_from: 0,
+            owned_len: 4,
+        }];
+        assert!(
+            attn_index_host(5, &order, &bad)
+                .unwrap_err()
+                .contains("owned by no window")
+        );
     }
 }

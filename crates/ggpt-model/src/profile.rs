@@ -41,7 +41,10 @@ pub struct Timer {
 impl Timer {
     /// Starts timing entry `name()` (not evaluated when profiling is off).
     pub fn start(name: impl FnOnce() -> String) -> Self {
-        Self { name: is_enabled().then(name), t0: Instant::now() }
+        Self {
+            name: is_enabled().then(name),
+            t0: Instant::now(),
+        }
     }
 }
 
@@ -70,10 +73,16 @@ pub struct ProfileEntry {
 
 /// Returns the accumulated entries (sorted by name) and clears the table.
 pub fn take_report() -> Vec<ProfileEntry> {
-    let Ok(mut table) = TABLE.lock() else { return Vec::new() };
+    let Ok(mut table) = TABLE.lock() else {
+        return Vec::new();
+    };
     std::mem::take(&mut *table)
         .into_iter()
-        .map(|(name, (seconds, calls))| ProfileEntry { name, seconds, calls })
+        .map(|(name, (seconds, calls))| ProfileEntry {
+            name,
+            seconds,
+            calls,
+        })
         .collect()
 }
 
@@ -91,7 +100,10 @@ mod tests {
         assert_eq!(scope(|| "test.on".into(), || 5), 5);
         set_enabled(false);
         let report = take_report();
-        let on: Vec<_> = report.iter().filter(|e| e.name.starts_with("test.")).collect();
+        let on: Vec<_> = report
+            .iter()
+            .filter(|e| e.name.starts_with("test."))
+            .collect();
         assert_eq!(on.len(), 1);
         assert_eq!(on[0].name, "test.on");
         assert_eq!(on[0].calls, 2);

@@ -35,10 +35,10 @@ use burn::tensor::{Device, Distribution, Gradients, Tensor};
 use crate::drop_path::{self, MaskRngState};
 use crate::model::{Ggpt, GgptOutput, read_tensor_f32};
 use crate::norm;
-use crate::prepared::PreparedBatch;
-use crate::recorder::Recorder;
 use crate::ops::is_cpu_device;
+use crate::prepared::PreparedBatch;
 use crate::profile;
+use crate::recorder::Recorder;
 use crate::segments::{BlockPart, Op, Program};
 
 /// The gradients of `objective(model.forward(batch))` with respect to every parameter of
@@ -90,8 +90,15 @@ fn run<T, E>(
     let mut kept: Vec<Option<Tensor<2>>> = vec![None; program.segments.len()];
     for (k, seg) in program.segments.iter().enumerate() {
         rng_before.push(drop_path::mask_rng_state());
-        let args: Vec<Tensor<2>> = seg.inputs.iter().map(|&i| slot(&values, i, &device).autodiff()).collect();
-        let (outs, core) = profile::scope(|| format!("step.forward.{}", op_kind(seg.op)), || frozen.run_segment_keeping_core(batch, seg.op, &args, &mut rec));
+        let args: Vec<Tensor<2>> = seg
+            .inputs
+            .iter()
+            .map(|&i| slot(&values, i, &device).autodiff())
+            .collect();
+        let (outs, core) = profile::scope(
+            || format!("step.forward.{}", op_kind(seg.op)),
+            || frozen.run_segment_keeping_core(batch, seg.op, &args, &mut rec),
+        );
         if host_kernels {
             kept[k] = core.map(Tensor::without_autodiff);
         }
@@ -106,8 +113,14 @@ fn run<T, E>(
     let mut acc = GradientsParams::new();
     let mut slot_grads: Vec<Option<Tensor<2>>> = vec![None; program.num_slots];
     let [y_slot, feat_slot] = program.head_inputs;
-    let (y, feat) = (leaf(&values, y_slot, &device), leaf(&values, feat_slot, &device));
-    let (loss, extra) = profile::scope(|| "step.head_and_loss".to_string(), || objective(model.run_head(batch, y.clone(), feat.clone(), &mut rec)))?;
+    let (y, feat) = (
+        leaf(&values, y_slot, &device),
+        leaf(&values, feat_slot, &device),
+    );
+    let (loss, extra) = profile::scope(
+        || "step.head_and_loss".to_string(),
+        || objective(model.run_head(batch, y.clone(), feat.clone(), &mut rec)),
+    )?;
     let mut grads = profile::scope(|| "step.backward.head".to_string(), || loss.backward());
     add_slot_grad(&mut slot_grads, y_slot, y.grad_remove(&mut grads));
     add_slot_grad(&mut slot_grads, feat_slot, feat.grad_remove(&mut grads));
@@ -116,7 +129,8 @@ fn run<T, E>(
 
     for (k, seg) in program.segments.iter().enumerate().rev() {
         let _timer = profile::Timer::start(|| format!("step.backward.{}", op_kind(seg.op)));
-        let out_grads: Vec<Option<Tensor<2>>> = seg.outputs.iter().map(|&o| slot_grads[o].take()).collect();
+        let out_grads: Vec<Option<Tensor<2>>> =
+            seg.outputs.iter().map(|&o| slot_grads[o].take()).collect();
         for &o in &seg.outputs {
             // every reader of the outputs came later and has been processed
             values[o] = None;
@@ -137,7 +151,9 @@ fn run<T, E>(
             .filter_map(|i| leaves.iter().find(|(j, _)| j == i).map(|(_, t)| t.clone()))
             .collect();
         drop_path::restore_mask_rng(&rng_before[k]);
-        if let (Op::Block { stage, block, part }, true, [Some(g)]) = (seg.op, host_kernels, out_grads.as_slice()) {
+        if let (Op::Block { stage, block, part }, true, [Some(g)]) =
+            (seg.op, host_kernels, out_grads.as_slice())
+        {
             // the block parts differentiated on the host (no graph, no score tensor, no per-tap
             // weight slices, multi-threaded element-wise passes)
             let (blocks, level) = model.stage_blocks(batch, stage);
@@ -152,14 +168,21 @@ fn run<T, E>(
                 for (&i, g) in seg.inputs.iter().zip(d.inputs) {
                     add_slot_grad(&mut slot_grads, i, Some(g));
                 }
-                d.vectors.into_iter().for_each(|(id, g)| add_param_grad(&mut acc, id, g));
-                d.matrices.into_iter().for_each(|(id, g)| add_param_grad(&mut acc, id, g));
-                d.kernels.into_iter().for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                d.vectors
+                    .into_iter()
+                    .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                d.matrices
+                    .into_iter()
+                    .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                d.kernels
+                    .into_iter()
+                    .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
                 continue;
             }
             drop_path::restore_mask_rng(&rng_before[k]);
         }
-        let outs = norm::without_running_updates(|| model.run_segment(batch, seg.op, &args, &mut rec));
+        let outs =
+            norm::without_running_updates(|| model.run_segment(batch, seg.op, &args, &mut rec));
         drop(args);
         let surrogate = outs
             .into_iter()
@@ -198,7 +221,9 @@ fn op_kind(op: Op) -> String {
 /// The stored value of slot `i`. [`Program`] has every slot written before it is read, so the
 /// empty fallback is never taken.
 fn slot(values: &[Option<Tensor<2>>], i: usize, device: &Device) -> Tensor<2> {
-    values[i].clone().unwrap_or_else(|| Tensor::zeros([0, 0], device))
+    values[i]
+        .clone()
+        .unwrap_or_else(|| Tensor::zeros([0, 0], device))
 }
 
 /// A fresh autodiff leaf holding the stored value of slot `i`.
@@ -254,9 +279,14 @@ fn has_active_drop_path(model: &Ggpt) -> bool {
 /// A mask seed drawn from the device RNG (deterministic under `Device::seed`).
 fn device_seed(batch: &PreparedBatch) -> u64 {
     let device = batch.coord.device();
-    let draw = Tensor::<1>::random([2], Distribution::Uniform(0.0, 1.0), &device.without_autodiff());
+    let draw = Tensor::<1>::random(
+        [2],
+        Distribution::Uniform(0.0, 1.0),
+        &device.without_autodiff(),
+    );
     let v = read_tensor_f32(&draw, "drop-path seed").unwrap_or_default();
-    let word = |i: usize| (f64::from(v.get(i).copied().unwrap_or(0.0)) * f64::from(u32::MAX)) as u64;
+    let word =
+        |i: usize| (f64::from(v.get(i).copied().unwrap_or(0.0)) * f64::from(u32::MAX)) as u64;
     (word(0) << 32) | word(1)
 }
 
@@ -271,7 +301,8 @@ mod tests {
     /// The tests seed and draw from the shared ndarray device RNG: one at a time.
     fn rng_lock() -> std::sync::MutexGuard<'static, ()> {
         static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
-        LOCK.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+        LOCK.lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
     fn flat(model: &Ggpt, grads: &GradientsParams) -> Vec<(String, Vec<f32>)> {
@@ -281,11 +312,19 @@ mod tests {
         }
         impl ModuleVisitor for Flat<'_> {
             fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-                let g = self.grads.get::<D>(param.id).map(|g| g.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default());
+                let g = self.grads.get::<D>(param.id).map(|g| {
+                    g.into_data()
+                        .convert::<f32>()
+                        .try_to_vec::<f32>()
+                        .unwrap_or_default()
+                });
                 self.out.push((param.id.to_string(), g.unwrap_or_default()));
             }
         }
-        let mut v = Flat { grads, out: Vec::new() };
+        let mut v = Flat {
+            grads,
+            out: Vec::new(),
+        };
         model.visit(&mut v);
         v.out
     }
@@ -295,8 +334,18 @@ mod tests {
             .named_batch_norms()
             .into_iter()
             .flat_map(|(_, bn)| {
-                let m = bn.running_mean.value_sync().into_data().try_to_vec::<f32>().unwrap_or_default();
-                let v = bn.running_var.value_sync().into_data().try_to_vec::<f32>().unwrap_or_default();
+                let m = bn
+                    .running_mean
+                    .value_sync()
+                    .into_data()
+                    .try_to_vec::<f32>()
+                    .unwrap_or_default();
+                let v = bn
+                    .running_var
+                    .value_sync()
+                    .into_data()
+                    .try_to_vec::<f32>()
+                    .unwrap_or_default();
                 m.into_iter().chain(v)
             })
             .collect()
@@ -314,7 +363,9 @@ mod tests {
     #[test]
     fn recomputed_gradients_equal_plain_autodiff() {
         let _rng = rng_lock();
-        let device = crate::device::device_from_name("ndarray").unwrap().autodiff();
+        let device = crate::device::device_from_name("ndarray")
+            .unwrap()
+            .autodiff();
         let mut cfg = GgptConfig::tiny();
         cfg.drop_path = 0.3;
         let host = device.clone().without_autodiff();
@@ -341,29 +392,53 @@ mod tests {
         let got_rng = drop_path::mask_rng_state();
         drop_path::seed_drop_path(None);
 
-        assert!((want_loss - got_loss).abs() <= 1e-6 * want_loss.abs(), "{want_loss} vs {got_loss}");
+        assert!(
+            (want_loss - got_loss).abs() <= 1e-6 * want_loss.abs(),
+            "{want_loss} vs {got_loss}"
+        );
         let (want, got) = (flat(&plain, &want), flat(&segmented, &got));
         assert_eq!(want.len(), got.len());
         let abs_max = |v: &[f32]| v.iter().fold(0.0f32, |m, x| m.max(x.abs()));
         let global = want.iter().map(|(_, w)| abs_max(w)).fold(0.0f32, f32::max);
         let mut worst = 0.0f32;
         for ((_, w), (_, g)) in want.iter().zip(&got) {
-            assert_eq!(w.len(), g.len(), "a parameter without a gradient on one side");
-            let diff = w.iter().zip(g).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            assert_eq!(
+                w.len(),
+                g.len(),
+                "a parameter without a gradient on one side"
+            );
+            let diff = w
+                .iter()
+                .zip(g)
+                .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
             // tensors whose exact gradient is 0 hold float noise (biases of a Linear followed
             // by BatchNorm, the key third of qkv biases): measured against the largest gradient
             let max = abs_max(w).max(1e-3 * global);
             worst = worst.max(diff / max);
         }
         assert!(global > 0.0);
-        assert!(worst <= 1e-5, "worst gradient difference {worst:e} relative to max");
+        assert!(
+            worst <= 1e-5,
+            "worst gradient difference {worst:e} relative to max"
+        );
         // both sides have gradients for the same parameters (Burn registers none for a few
         // biases whose gradient is structurally zero); most parameters have one
         assert!(want.iter().filter(|(_, w)| !w.is_empty()).count() * 5 > want.len() * 4);
         let (rw, rg) = (running(&plain), running(&segmented));
-        assert!(rw.iter().zip(&rg).all(|(a, b)| (a - b).abs() <= 1e-6), "running statistics differ");
-        assert_ne!(rw, running(&base.valid()), "the running statistics were updated");
-        assert_eq!(format!("{want_rng:?}"), format!("{got_rng:?}"), "the mask RNG ends where a plain forward leaves it");
+        assert!(
+            rw.iter().zip(&rg).all(|(a, b)| (a - b).abs() <= 1e-6),
+            "running statistics differ"
+        );
+        assert_ne!(
+            rw,
+            running(&base.valid()),
+            "the running statistics were updated"
+        );
+        assert_eq!(
+            format!("{want_rng:?}"),
+            format!("{got_rng:?}"),
+            "the mask RNG ends where a plain forward leaves it"
+        );
     }
 
     /// The host backward of every block part (CPE, attention, MLP) equals autodiff of that
@@ -372,7 +447,9 @@ mod tests {
     #[test]
     fn host_part_backwards_equal_autodiff_of_the_part() {
         let _rng = rng_lock();
-        let device = crate::device::device_from_name("ndarray").unwrap().autodiff();
+        let device = crate::device::device_from_name("ndarray")
+            .unwrap()
+            .autodiff();
         let host = device.clone().without_autodiff();
         let mut cfg = GgptConfig::tiny();
         cfg.drop_path = 0.3;
@@ -381,17 +458,32 @@ mod tests {
         let batch = prepare_chunks(&cfg, &[surface_chunk(300, 3)], &device).unwrap();
         let stage = Stage::Enc(1);
         let (blocks, level) = model.stage_blocks(&batch, stage);
-        let active = blocks.iter().position(|b| b.drop_path.prob > 0.0).expect("a block with drop path");
+        let active = blocks
+            .iter()
+            .position(|b| b.drop_path.prob > 0.0)
+            .expect("a block with drop path");
         let frozen = model.clone().no_grad();
         let (frozen_blocks, _) = frozen.stage_blocks(&batch, stage);
         let c = blocks[0].norm1.gamma.val().dims()[0];
-        let random = || Tensor::<2>::random([level.num_tokens, c], Distribution::Uniform(-1.0, 1.0), &host);
+        let random = || {
+            Tensor::<2>::random(
+                [level.num_tokens, c],
+                Distribution::Uniform(-1.0, 1.0),
+                &host,
+            )
+        };
         let (x, x_conv, g) = (random(), random(), random());
         let close = |name: &str, a: &[f32], b: &[f32]| {
             let max = a.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-12);
             assert_eq!(a.len(), b.len(), "{name}: lengths");
-            let worst = a.iter().zip(b).fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
-            assert!(worst <= 2e-5 * max, "{name}: worst difference {worst:e} of max {max:e}");
+            let worst = a
+                .iter()
+                .zip(b)
+                .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+            assert!(
+                worst <= 2e-5 * max,
+                "{name}: worst difference {worst:e} of max {max:e}"
+            );
         };
         for block in [0, active] {
             let b = &blocks[block];
@@ -400,43 +492,77 @@ mod tests {
                 let label = format!("block {block} {part:?}");
                 // autodiff of the part
                 drop_path::seed_drop_path(Some(9));
-                let (xa, xca) = (x.clone().autodiff().require_grad(), x_conv.clone().autodiff().require_grad());
+                let (xa, xca) = (
+                    x.clone().autodiff().require_grad(),
+                    x_conv.clone().autodiff().require_grad(),
+                );
                 let mut rec = Recorder::disabled();
                 let y = match part {
-                    BlockPart::Cpe => b.cpe_part(xa.clone(), xca.clone(), level, &mut rec, "enc1.block"),
+                    BlockPart::Cpe => {
+                        b.cpe_part(xa.clone(), xca.clone(), level, &mut rec, "enc1.block")
+                    }
                     BlockPart::Attn => b.attn_part(xa.clone(), level, &mut rec, "enc1.block"),
                     BlockPart::Mlp => b.mlp_part(xa.clone(), &mut rec, "enc1.block"),
                 };
                 let mut grads = (y * g.clone().autodiff()).sum().backward();
-                let mut want_inputs = vec![read_tensor_f32(&xa.grad_remove(&mut grads).unwrap(), "x").unwrap()];
+                let mut want_inputs =
+                    vec![read_tensor_f32(&xa.grad_remove(&mut grads).unwrap(), "x").unwrap()];
                 if part == BlockPart::Cpe {
-                    want_inputs.push(read_tensor_f32(&xca.grad_remove(&mut grads).unwrap(), "x_conv").unwrap());
+                    want_inputs.push(
+                        read_tensor_f32(&xca.grad_remove(&mut grads).unwrap(), "x_conv").unwrap(),
+                    );
                 }
                 let mut want = GradientsParams::new();
                 collect_param_grads(&model, &mut grads, &mut want);
                 let want = flat(&model, &want);
                 // the kept intermediate, as the graph-free forward computes it
                 let kept = match part {
-                    BlockPart::Cpe => Some(fb.cpe_part_with_conv(x.clone().autodiff(), x_conv.clone().autodiff(), level, &mut rec, "enc1.block").1),
-                    BlockPart::Attn => Some(fb.attn_part_with_core(x.clone().autodiff(), level, &mut rec, "enc1.block").1),
+                    BlockPart::Cpe => Some(
+                        fb.cpe_part_with_conv(
+                            x.clone().autodiff(),
+                            x_conv.clone().autodiff(),
+                            level,
+                            &mut rec,
+                            "enc1.block",
+                        )
+                        .1,
+                    ),
+                    BlockPart::Attn => Some(
+                        fb.attn_part_with_core(x.clone().autodiff(), level, &mut rec, "enc1.block")
+                            .1,
+                    ),
                     BlockPart::Mlp => None,
                 };
                 for kept in [kept.map(Tensor::without_autodiff), None] {
                     drop_path::seed_drop_path(Some(9));
                     let d = match part {
-                        BlockPart::Cpe => b.cpe_part_backward(x_conv.clone(), kept.clone(), g.clone(), level),
-                        BlockPart::Attn => b.attn_part_backward(x.clone(), g.clone(), level, kept.clone()),
+                        BlockPart::Cpe => {
+                            b.cpe_part_backward(x_conv.clone(), kept.clone(), g.clone(), level)
+                        }
+                        BlockPart::Attn => {
+                            b.attn_part_backward(x.clone(), g.clone(), level, kept.clone())
+                        }
                         BlockPart::Mlp => b.mlp_part_backward(x.clone(), g.clone()),
                     }
                     .expect("host backward");
                     assert_eq!(d.inputs.len(), want_inputs.len(), "{label}");
                     for (w, got) in want_inputs.iter().zip(&d.inputs) {
-                        close(&format!("{label} input"), w, &read_tensor_f32(got, "d input").unwrap());
+                        close(
+                            &format!("{label} input"),
+                            w,
+                            &read_tensor_f32(got, "d input").unwrap(),
+                        );
                     }
                     let mut acc = GradientsParams::new();
-                    d.vectors.into_iter().for_each(|(id, g)| add_param_grad(&mut acc, id, g));
-                    d.matrices.into_iter().for_each(|(id, g)| add_param_grad(&mut acc, id, g));
-                    d.kernels.into_iter().for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                    d.vectors
+                        .into_iter()
+                        .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                    d.matrices
+                        .into_iter()
+                        .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                    d.kernels
+                        .into_iter()
+                        .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
                     let got = flat(&model, &acc);
                     let mut compared = 0;
                     for ((name, w), (_, got)) in want.iter().zip(&got) {
@@ -456,7 +582,9 @@ mod tests {
     #[test]
     fn objective_errors_are_returned() {
         let _rng = rng_lock();
-        let device = crate::device::device_from_name("ndarray").unwrap().autodiff();
+        let device = crate::device::device_from_name("ndarray")
+            .unwrap()
+            .autodiff();
         let cfg = GgptConfig::tiny();
         let model = Ggpt::new(&cfg, &device).train();
         let batch = prepare_chunks(&cfg, &[surface_chunk(200, 5)], &device).unwrap();

@@ -15,7 +15,10 @@ pub struct Recorder {
 impl Recorder {
     /// A recorder that keeps every tensor.
     pub fn enabled() -> Self {
-        Self { enabled: true, tensors: HashMap::new() }
+        Self {
+            enabled: true,
+            tensors: HashMap::new(),
+        }
     }
 
     /// A recorder that keeps nothing.

@@ -119,13 +119,30 @@ impl Program {
             next += 1;
             s
         };
-        segments.push(Segment { op: Op::Embed, inputs: vec![], outputs: vec![FEAT_SLOT] });
+        segments.push(Segment {
+            op: Op::Embed,
+            inputs: vec![],
+            outputs: vec![FEAT_SLOT],
+        });
         let mut x = fresh();
-        segments.push(Segment { op: Op::Stem, inputs: vec![FEAT_SLOT], outputs: vec![x] });
-        let blocks = |segments: &mut Vec<Segment>, fresh: &mut dyn FnMut() -> usize, stage: Stage, depth: usize, mut x: usize, mut x_conv: usize| {
+        segments.push(Segment {
+            op: Op::Stem,
+            inputs: vec![FEAT_SLOT],
+            outputs: vec![x],
+        });
+        let blocks = |segments: &mut Vec<Segment>,
+                      fresh: &mut dyn FnMut() -> usize,
+                      stage: Stage,
+                      depth: usize,
+                      mut x: usize,
+                      mut x_conv: usize| {
             for block in 0..depth {
                 let (x1, x2, x3) = (fresh(), fresh(), fresh());
-                let seg = |part, inputs, out| Segment { op: Op::Block { stage, block, part }, inputs, outputs: vec![out] };
+                let seg = |part, inputs, out| Segment {
+                    op: Op::Block { stage, block, part },
+                    inputs,
+                    outputs: vec![out],
+                };
                 segments.push(seg(BlockPart::Cpe, vec![x, x_conv], x1));
                 segments.push(seg(BlockPart::Attn, vec![x1], x2));
                 segments.push(seg(BlockPart::Mlp, vec![x2], x3));
@@ -138,7 +155,11 @@ impl Program {
         for (s, &depth) in enc_depths.iter().enumerate().take(NUM_LEVELS) {
             if s > 0 {
                 let pooled = fresh();
-                segments.push(Segment { op: Op::Down(s), inputs: vec![x], outputs: vec![pooled] });
+                segments.push(Segment {
+                    op: Op::Down(s),
+                    inputs: vec![x],
+                    outputs: vec![pooled],
+                });
                 x = pooled;
             }
             x = blocks(&mut segments, &mut fresh, Stage::Enc(s), depth, x, x);
@@ -147,8 +168,19 @@ impl Program {
         let mut y = x;
         for s in (0..NUM_DEC_STAGES.min(dec_depths.len())).rev() {
             let (u, proj_skip) = (fresh(), fresh());
-            segments.push(Segment { op: Op::Up(s), inputs: vec![y, skips[s]], outputs: vec![u, proj_skip] });
-            y = blocks(&mut segments, &mut fresh, Stage::Dec(s), dec_depths[s], u, proj_skip);
+            segments.push(Segment {
+                op: Op::Up(s),
+                inputs: vec![y, skips[s]],
+                outputs: vec![u, proj_skip],
+            });
+            y = blocks(
+                &mut segments,
+                &mut fresh,
+                Stage::Dec(s),
+                dec_depths[s],
+                u,
+                proj_skip,
+            );
         }
         let head_inputs = [y, FEAT_SLOT];
         let num_slots = next;
@@ -161,7 +193,12 @@ impl Program {
         for i in head_inputs {
             last_use[i] = segments.len();
         }
-        Self { segments, head_inputs, num_slots, last_use }
+        Self {
+            segments,
+            head_inputs,
+            num_slots,
+            last_use,
+        }
     }
 
     /// The program of `model`.
@@ -176,7 +213,13 @@ impl Ggpt {
     /// Runs one segment: `inputs` in the order of [`Segment::inputs`], returns the
     /// tensors of [`Segment::outputs`]. Shapes as in the module table; recording under the
     /// fixture names when `rec` is enabled.
-    pub fn run_segment(&self, batch: &PreparedBatch, op: Op, inputs: &[Tensor<2>], rec: &mut Recorder) -> Vec<Tensor<2>> {
+    pub fn run_segment(
+        &self,
+        batch: &PreparedBatch,
+        op: Op,
+        inputs: &[Tensor<2>],
+        rec: &mut Recorder,
+    ) -> Vec<Tensor<2>> {
         self.run_segment_keeping_core(batch, op, inputs, rec).0
     }
 
@@ -184,11 +227,20 @@ impl Ggpt {
     /// block part takes instead of recomputing it: for an attention part ([`BlockPart::Attn`])
     /// the attention before its output projection ([`Block::attn_part_with_core`]), for a CPE
     /// part the sparse conv's output ([`Block::cpe_part_with_conv`]), both `[N, C]`.
-    pub fn run_segment_keeping_core(&self, batch: &PreparedBatch, op: Op, inputs: &[Tensor<2>], rec: &mut Recorder) -> (Vec<Tensor<2>>, Option<Tensor<2>>) {
+    pub fn run_segment_keeping_core(
+        &self,
+        batch: &PreparedBatch,
+        op: Op,
+        inputs: &[Tensor<2>],
+        rec: &mut Recorder,
+    ) -> (Vec<Tensor<2>>, Option<Tensor<2>>) {
         let arg = |i: usize| inputs[i].clone();
         match op {
             Op::Embed => {
-                let types = Tensor::stack::<2>(vec![self.ff_type_embed.val(), self.dlt_type_embed.val()], 0);
+                let types = Tensor::stack::<2>(
+                    vec![self.ff_type_embed.val(), self.dlt_type_embed.val()],
+                    0,
+                );
                 let type_rows = types.select(0, batch.type_index.clone());
                 let feat = Tensor::cat(vec![type_rows, batch.feat_no_embed.clone()], 1);
                 rec.record(|| "input.feat".into(), &feat);
@@ -203,7 +255,9 @@ impl Ggpt {
             Op::Down(s) => {
                 let pool = s.checked_sub(1).and_then(|p| batch.levels[p].pool.as_ref());
                 let out = match (&self.enc[s].down, pool) {
-                    (Some(down), Some(prev)) => down.forward(arg(0), prev, rec, &format!("enc{s}.down")),
+                    (Some(down), Some(prev)) => {
+                        down.forward(arg(0), prev, rec, &format!("enc{s}.down"))
+                    }
                     _ => arg(0),
                 };
                 (vec![out], None)
@@ -211,7 +265,11 @@ impl Ggpt {
             Op::Block { stage, block, part } => {
                 let (blocks, level) = self.stage_blocks(batch, stage);
                 let prefix = stage.name();
-                let last_name = if stage == Stage::Dec(0) { "backbone.out".to_string() } else { format!("{prefix}.out") };
+                let last_name = if stage == Stage::Dec(0) {
+                    "backbone.out".to_string()
+                } else {
+                    format!("{prefix}.out")
+                };
                 let b = &blocks[block];
                 let name = format!("{prefix}.block{block}");
                 let (out, core) = match part {
@@ -232,7 +290,13 @@ impl Ggpt {
             }
             Op::Up(s) => match batch.levels[s].pool.as_ref() {
                 Some(pool) => {
-                    let (u, proj_skip) = self.dec[s].up.forward(arg(0), arg(1), pool.cluster.clone(), rec, &format!("dec{s}.up"));
+                    let (u, proj_skip) = self.dec[s].up.forward(
+                        arg(0),
+                        arg(1),
+                        pool.cluster.clone(),
+                        rec,
+                        &format!("dec{s}.up"),
+                    );
                     (vec![u, proj_skip], None)
                 }
                 // levels 0..=3 always pool (PreparedBatch::new checks it)
@@ -242,7 +306,11 @@ impl Ggpt {
     }
 
     /// The blocks of `stage` and the prepared tables of its level.
-    pub fn stage_blocks<'a>(&'a self, batch: &'a PreparedBatch, stage: Stage) -> (&'a [Block], &'a PreparedLevel) {
+    pub fn stage_blocks<'a>(
+        &'a self,
+        batch: &'a PreparedBatch,
+        stage: Stage,
+    ) -> (&'a [Block], &'a PreparedLevel) {
         match stage {
             Stage::Enc(s) => (&self.enc[s].blocks, &batch.levels[s]),
             Stage::Dec(s) => (&self.dec[s].blocks, &batch.levels[s]),
@@ -250,7 +318,13 @@ impl Ggpt {
     }
 
     /// The head segment: `y [N_0, D_0]` (decoder output) and `feat [N_0, 218]` -> outputs.
-    pub fn run_head(&self, batch: &PreparedBatch, y: Tensor<2>, feat: Tensor<2>, rec: &mut Recorder) -> GgptOutput {
+    pub fn run_head(
+        &self,
+        batch: &PreparedBatch,
+        y: Tensor<2>,
+        feat: Tensor<2>,
+        rec: &mut Recorder,
+    ) -> GgptOutput {
         // Row blocks bound the [N, D_0 + 218] / [N, W] intermediates on large chunks.
         let [_, d0] = y.dims();
         let width = (d0 + feat.dims()[1]).max(self.head.fc1.weight.dims()[1]);
@@ -258,7 +332,11 @@ impl Ggpt {
         let h = map_row_blocks(both, width, |rows| self.head.forward(rows));
         rec.record(|| "head.pre_activation".into(), &h);
         let (tokens_xyz, tokens_conf) = head_outputs(h.clone(), batch.coord.clone());
-        GgptOutput { tokens_xyz, tokens_conf, pre_activation: h }
+        GgptOutput {
+            tokens_xyz,
+            tokens_conf,
+            pre_activation: h,
+        }
     }
 }
 

@@ -40,8 +40,14 @@ impl SubmConv3d {
     /// Initialised `U(±1/sqrt(27 C_in))` (network.md §11.4).
     pub fn new(c_in: usize, c_out: usize, device: &Device) -> Self {
         let bound = 1.0 / ((NUM_TAPS * c_in) as f64).sqrt();
-        let init = Initializer::Uniform { min: -bound, max: bound };
-        Self { weight: init.init([c_out, 3, 3, 3, c_in], device), bias: init.init([c_out], device) }
+        let init = Initializer::Uniform {
+            min: -bound,
+            max: bound,
+        };
+        Self {
+            weight: init.init([c_out, 3, 3, 3, c_in], device),
+            bias: init.init([c_out], device),
+        }
     }
 
     /// `x [N, C_in] -> [N, C_out]` over the level's neighbour tables.
@@ -56,7 +62,10 @@ impl SubmConv3d {
         if n == 0 {
             return Tensor::zeros([0, c_out], &device);
         }
-        if is_cpu_device(&device) && index.occupancy < TAPWISE_MAX_OCCUPANCY && !index.taps.is_empty() {
+        if is_cpu_device(&device)
+            && index.occupancy < TAPWISE_MAX_OCCUPANCY
+            && !index.taps.is_empty()
+        {
             self.forward_tapwise(x, index)
         } else {
             self.forward_im2col(x, index)
@@ -86,7 +95,11 @@ impl SubmConv3d {
         let [n, c_in] = x.dims();
         let [c_out, _, _, _, _] = self.weight.dims();
         let device = x.device();
-        let w_mat = self.weight.val().reshape([c_out, NUM_TAPS * c_in]).transpose();
+        let w_mat = self
+            .weight
+            .val()
+            .reshape([c_out, NUM_TAPS * c_in])
+            .transpose();
         let x_ext = Self::extended_input(x, index);
         let rows_per_block = (IM2COL_BUDGET_FLOATS / (NUM_TAPS * c_in)).max(1);
         let bias = self.bias.val().reshape([1, c_out]);
@@ -94,13 +107,18 @@ impl SubmConv3d {
         let mut r0 = 0;
         while r0 < n {
             let rows = rows_per_block.min(n - r0);
-            let idx = index.im2col.clone().narrow(0, r0 * NUM_TAPS, rows * NUM_TAPS);
+            let idx = index
+                .im2col
+                .clone()
+                .narrow(0, r0 * NUM_TAPS, rows * NUM_TAPS);
             let cols = gather_rows(x_ext.clone(), idx).reshape([rows, NUM_TAPS * c_in]);
             outs.push(cols.matmul(w_mat.clone()) + bias.clone());
             r0 += rows;
         }
         match outs.len() {
-            1 => outs.pop().unwrap_or_else(|| Tensor::zeros([0, c_out], &device)),
+            1 => outs
+                .pop()
+                .unwrap_or_else(|| Tensor::zeros([0, c_out], &device)),
             _ => Tensor::cat(outs, 0),
         }
     }
@@ -112,11 +130,20 @@ impl SubmConv3d {
         let [n, c_in] = x.dims();
         let [c_out, _, _, _, _] = self.weight.dims();
         // [27 C_in, C_out]: rows f C_in .. (f + 1) C_in are W_f^T.
-        let w_mat = self.weight.val().reshape([c_out, NUM_TAPS * c_in]).transpose();
-        let x_ext = if index.num_groups > 0 { Self::extended_input(x.clone(), index) } else { x.clone() };
+        let w_mat = self
+            .weight
+            .val()
+            .reshape([c_out, NUM_TAPS * c_in])
+            .transpose();
+        let x_ext = if index.num_groups > 0 {
+            Self::extended_input(x.clone(), index)
+        } else {
+            x.clone()
+        };
         let rows_per_block = (IM2COL_BUDGET_FLOATS / c_in.max(c_out)).max(1);
         // A dense, uniquely owned [N, C_out] (scatter-adds then update it in place on flex).
-        let mut out = Tensor::<2>::zeros([n, c_out], &x.device()) + self.bias.val().reshape([1, c_out]);
+        let mut out =
+            Tensor::<2>::zeros([n, c_out], &x.device()) + self.bias.val().reshape([1, c_out]);
         // Full taps first: plain adds build the output before any scatter.
         let mut order: Vec<&TapIndex> = index.taps.iter().collect();
         order.sort_by_key(|t| !t.full);
@@ -134,7 +161,12 @@ impl SubmConv3d {
                 out = if tap.full && rows == tap.len {
                     out + y
                 } else {
-                    out.select_assign(0, tap.target.clone().narrow(0, r0, rows), y, IndexingUpdateOp::Add)
+                    out.select_assign(
+                        0,
+                        tap.target.clone().narrow(0, r0, rows),
+                        y,
+                        IndexingUpdateOp::Add,
+                    )
                 };
                 r0 += rows;
             }

@@ -27,8 +27,17 @@ pub struct Unpooling {
 
 impl Unpooling {
     /// New unpooling from `c_coarse` and `c_skip` channels to `c_out`.
-    pub fn new(cfg: &GgptConfig, c_coarse: usize, c_skip: usize, c_out: usize, device: &Device) -> Self {
-        Self { proj: LinearBnGelu::new(cfg, c_coarse, c_out, device), proj_skip: LinearBnGelu::new(cfg, c_skip, c_out, device) }
+    pub fn new(
+        cfg: &GgptConfig,
+        c_coarse: usize,
+        c_skip: usize,
+        c_out: usize,
+        device: &Device,
+    ) -> Self {
+        Self {
+            proj: LinearBnGelu::new(cfg, c_coarse, c_out, device),
+            proj_skip: LinearBnGelu::new(cfg, c_skip, c_out, device),
+        }
     }
 
     /// Returns `(u, proj_skip)`; records `{name}.proj`, `{name}.proj_skip`, `{name}.out`.

@@ -41,7 +41,9 @@
 use std::path::{Path, PathBuf};
 
 use burn::module::Module;
-use burn_store::{ApplyResult, KeyRemapper, ModuleSnapshot, PyTorchToBurnAdapter, PytorchStore, SafetensorsStore};
+use burn_store::{
+    ApplyResult, KeyRemapper, ModuleSnapshot, PyTorchToBurnAdapter, PytorchStore, SafetensorsStore,
+};
 
 use crate::error::{ModelError, Result};
 use crate::model::Ggpt;
@@ -51,14 +53,38 @@ pub const KEY_TABLE: [(&str, &str); 21] = [
     (r"^module\.", ""),
     (r"^backbone\.backbone\.embedding\.0\.", "embedding.linear."),
     (r"^backbone\.backbone\.embedding\.1\.", "embedding.norm."),
-    (r"^backbone\.backbone\.enc\.enc(\d+)\.down\.proj\.", "enc.${1}.down.proj."),
-    (r"^backbone\.backbone\.enc\.enc(\d+)\.down\.norm\.0\.", "enc.${1}.down.norm."),
-    (r"^backbone\.backbone\.enc\.enc(\d+)\.block(\d+)\.", "enc.${1}.blocks.${2}."),
-    (r"^backbone\.backbone\.dec\.dec(\d+)\.up\.proj\.0\.", "dec.${1}.up.proj.linear."),
-    (r"^backbone\.backbone\.dec\.dec(\d+)\.up\.proj\.1\.", "dec.${1}.up.proj.norm."),
-    (r"^backbone\.backbone\.dec\.dec(\d+)\.up\.proj_skip\.0\.", "dec.${1}.up.proj_skip.linear."),
-    (r"^backbone\.backbone\.dec\.dec(\d+)\.up\.proj_skip\.1\.", "dec.${1}.up.proj_skip.norm."),
-    (r"^backbone\.backbone\.dec\.dec(\d+)\.block(\d+)\.", "dec.${1}.blocks.${2}."),
+    (
+        r"^backbone\.backbone\.enc\.enc(\d+)\.down\.proj\.",
+        "enc.${1}.down.proj.",
+    ),
+    (
+        r"^backbone\.backbone\.enc\.enc(\d+)\.down\.norm\.0\.",
+        "enc.${1}.down.norm.",
+    ),
+    (
+        r"^backbone\.backbone\.enc\.enc(\d+)\.block(\d+)\.",
+        "enc.${1}.blocks.${2}.",
+    ),
+    (
+        r"^backbone\.backbone\.dec\.dec(\d+)\.up\.proj\.0\.",
+        "dec.${1}.up.proj.linear.",
+    ),
+    (
+        r"^backbone\.backbone\.dec\.dec(\d+)\.up\.proj\.1\.",
+        "dec.${1}.up.proj.norm.",
+    ),
+    (
+        r"^backbone\.backbone\.dec\.dec(\d+)\.up\.proj_skip\.0\.",
+        "dec.${1}.up.proj_skip.linear.",
+    ),
+    (
+        r"^backbone\.backbone\.dec\.dec(\d+)\.up\.proj_skip\.1\.",
+        "dec.${1}.up.proj_skip.norm.",
+    ),
+    (
+        r"^backbone\.backbone\.dec\.dec(\d+)\.block(\d+)\.",
+        "dec.${1}.blocks.${2}.",
+    ),
     (r"\.cpe\.0\.", ".cpe.conv."),
     (r"\.cpe\.1\.", ".cpe.linear."),
     (r"\.cpe\.2\.", ".cpe.norm."),
@@ -109,12 +135,19 @@ pub fn official_key(burn_path: &str) -> String {
     for (from, to) in rules {
         s = s.replace(from, to);
     }
-    s = s.replace(".up.proj_skip.linear.", ".up.proj_skip.0.").replace(".up.proj_skip.norm.", ".up.proj_skip.1.");
+    s = s
+        .replace(".up.proj_skip.linear.", ".up.proj_skip.0.")
+        .replace(".up.proj_skip.norm.", ".up.proj_skip.1.");
     let mut segs: Vec<String> = s.split('.').map(str::to_string).collect();
     if segs.len() >= 2 && (segs[0] == "enc" || segs[0] == "dec") {
         let kind = segs[0].clone();
         let stage = segs[1].clone();
-        let mut out = vec!["backbone".to_string(), "backbone".to_string(), kind.clone(), format!("{kind}{stage}")];
+        let mut out = vec![
+            "backbone".to_string(),
+            "backbone".to_string(),
+            kind.clone(),
+            format!("{kind}{stage}"),
+        ];
         let mut rest = segs.split_off(2);
         if rest.len() >= 2 && rest[0] == "blocks" {
             let i = rest[1].clone();
@@ -130,7 +163,11 @@ pub fn official_key(burn_path: &str) -> String {
     if s.starts_with("embedding.norm.") {
         return s.replacen("embedding.norm.", "backbone.backbone.embedding.1.", 1);
     }
-    for (from, to) in [("head.fc1.", "head.0."), ("head.fc2.", "head.2."), ("head.fc3.", "head.4.")] {
+    for (from, to) in [
+        ("head.fc1.", "head.0."),
+        ("head.fc2.", "head.2."),
+        ("head.fc3.", "head.4."),
+    ] {
         if s.starts_with(from) {
             return s.replacen(from, to, 1);
         }
@@ -140,20 +177,38 @@ pub fn official_key(burn_path: &str) -> String {
 
 /// Turns an `ApplyResult` into `Ok` or a strict-loading error naming every offending key.
 fn check_strict(path: &Path, result: &ApplyResult) -> Result<()> {
-    let missing: Vec<String> =
-        result.missing.iter().map(|(p, _)| format!("{p} (official key {})", official_key(p))).collect();
-    let unused: Vec<String> = result.unused.iter().filter(|k| !k.ends_with(IGNORED_SUFFIX)).cloned().collect();
+    let missing: Vec<String> = result
+        .missing
+        .iter()
+        .map(|(p, _)| format!("{p} (official key {})", official_key(p)))
+        .collect();
+    let unused: Vec<String> = result
+        .unused
+        .iter()
+        .filter(|k| !k.ends_with(IGNORED_SUFFIX))
+        .cloned()
+        .collect();
     let invalid: Vec<String> = result.errors.iter().map(|e| e.to_string()).collect();
     if missing.is_empty() && unused.is_empty() && invalid.is_empty() {
         return Ok(());
     }
     let mut details = String::new();
-    for (title, list) in [("missing", &missing), ("unused", &unused), ("invalid", &invalid)] {
+    for (title, list) in [
+        ("missing", &missing),
+        ("unused", &unused),
+        ("invalid", &invalid),
+    ] {
         for item in list.iter() {
             details.push_str(&format!("  {title}: {item}\n"));
         }
     }
-    Err(ModelError::CheckpointMismatch { path: path.to_path_buf(), missing, unused, invalid, details })
+    Err(ModelError::CheckpointMismatch {
+        path: path.to_path_buf(),
+        missing,
+        unused,
+        invalid,
+        details,
+    })
 }
 
 /// Checkpoint formats this crate reads.
@@ -170,13 +225,20 @@ pub enum CheckpointFormat {
 impl CheckpointFormat {
     /// Format from the file extension.
     pub fn from_path(path: &Path) -> Result<Self> {
-        match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
+        match path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase)
+            .as_deref()
+        {
             Some("pth" | "pt" | "bin" | "ckpt") => Ok(Self::Pytorch),
             Some("safetensors") => Ok(Self::Safetensors),
             Some("bpk" | "burnpack") => Ok(Self::Burnpack),
             other => Err(ModelError::CheckpointRead {
                 path: path.to_path_buf(),
-                message: format!("unknown checkpoint extension {other:?} (expected .pth, .safetensors or .bpk)"),
+                message: format!(
+                    "unknown checkpoint extension {other:?} (expected .pth, .safetensors or .bpk)"
+                ),
             }),
         }
     }
@@ -194,7 +256,10 @@ pub fn load_checkpoint(model: Ggpt, path: &Path) -> Result<Ggpt> {
 /// Loads an official `.pth` (torch zip pickle) strictly.
 pub fn load_pytorch(mut model: Ggpt, path: &Path) -> Result<Ggpt> {
     if !path.is_file() {
-        return Err(ModelError::CheckpointRead { path: path.to_path_buf(), message: "no such file".into() });
+        return Err(ModelError::CheckpointRead {
+            path: path.to_path_buf(),
+            message: "no such file".into(),
+        });
     }
     let mut store = PytorchStore::from_file(path)
         .remap(remapper(path)?)
@@ -203,7 +268,10 @@ pub fn load_pytorch(mut model: Ggpt, path: &Path) -> Result<Ggpt> {
         .validate(false);
     let result = model
         .load_from(&mut store)
-        .map_err(|e| ModelError::CheckpointRead { path: path.to_path_buf(), message: e.to_string() })?;
+        .map_err(|e| ModelError::CheckpointRead {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
     check_strict(path, &result)?;
     Ok(model)
 }
@@ -211,7 +279,10 @@ pub fn load_pytorch(mut model: Ggpt, path: &Path) -> Result<Ggpt> {
 /// Loads an official `.safetensors` strictly.
 pub fn load_safetensors(mut model: Ggpt, path: &Path) -> Result<Ggpt> {
     if !path.is_file() {
-        return Err(ModelError::CheckpointRead { path: path.to_path_buf(), message: "no such file".into() });
+        return Err(ModelError::CheckpointRead {
+            path: path.to_path_buf(),
+            message: "no such file".into(),
+        });
     }
     let mut store = SafetensorsStore::from_file(path)
         .with_from_adapter(PyTorchToBurnAdapter)
@@ -221,7 +292,10 @@ pub fn load_safetensors(mut model: Ggpt, path: &Path) -> Result<Ggpt> {
         .validate(false);
     let result = model
         .load_from(&mut store)
-        .map_err(|e| ModelError::CheckpointRead { path: path.to_path_buf(), message: e.to_string() })?;
+        .map_err(|e| ModelError::CheckpointRead {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
     check_strict(path, &result)?;
     Ok(model)
 }
@@ -229,29 +303,48 @@ pub fn load_safetensors(mut model: Ggpt, path: &Path) -> Result<Ggpt> {
 /// Loads one of this crate's burnpack checkpoints strictly.
 pub fn load_burnpack(mut model: Ggpt, path: &Path) -> Result<Ggpt> {
     if !path.is_file() {
-        return Err(ModelError::CheckpointRead { path: path.to_path_buf(), message: "no such file".into() });
+        return Err(ModelError::CheckpointRead {
+            path: path.to_path_buf(),
+            message: "no such file".into(),
+        });
     }
     // Read the whole file now: a file-backed store materialises tensors lazily, which would
     // break if the file is replaced or deleted after loading.
-    let bytes = std::fs::read(path)
-        .map_err(|e| ModelError::CheckpointRead { path: path.to_path_buf(), message: e.to_string() })?;
-    let mut store = burn_store::BurnpackStore::from_bytes(Some(burn::tensor::Bytes::from_bytes_vec(bytes)))
-        .allow_partial(true)
-        .validate(false);
+    let bytes = std::fs::read(path).map_err(|e| ModelError::CheckpointRead {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    let mut store =
+        burn_store::BurnpackStore::from_bytes(Some(burn::tensor::Bytes::from_bytes_vec(bytes)))
+            .allow_partial(true)
+            .validate(false);
     let result = model
         .load_from(&mut store)
-        .map_err(|e| ModelError::CheckpointRead { path: path.to_path_buf(), message: e.to_string() })?;
+        .map_err(|e| ModelError::CheckpointRead {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
     check_strict(path, &result)?;
     Ok(model)
 }
 
 /// Saves `model` as burnpack at `path`, atomically (temporary file in the same folder, then rename).
 pub fn save_burnpack(model: &Ggpt, path: &Path) -> Result<()> {
-    let err = |message: String| ModelError::CheckpointWrite { path: path.to_path_buf(), message };
-    let file_name = path.file_name().and_then(|f| f.to_str()).ok_or_else(|| err("no file name".into()))?;
+    let err = |message: String| ModelError::CheckpointWrite {
+        path: path.to_path_buf(),
+        message,
+    };
+    let file_name = path
+        .file_name()
+        .and_then(|f| f.to_str())
+        .ok_or_else(|| err("no file name".into()))?;
     let tmp: PathBuf = path.with_file_name(format!(".{file_name}.tmp{}", std::process::id()));
-    let mut store = burn_store::BurnpackStore::from_file(&tmp).overwrite(true).auto_extension(false);
-    model.save_into(&mut store).map_err(|e| err(e.to_string()))?;
+    let mut store = burn_store::BurnpackStore::from_file(&tmp)
+        .overwrite(true)
+        .auto_extension(false);
+    model
+        .save_into(&mut store)
+        .map_err(|e| err(e.to_string()))?;
     std::fs::rename(&tmp, path).map_err(|e| {
         let _ = std::fs::remove_file(&tmp);
         err(format!("rename: {e}"))
@@ -272,14 +365,20 @@ pub fn num_trainable_params(model: &Ggpt) -> usize {
         fn exit_module(&mut self, _name: &str, _container_type: &str) {
             self.path.pop();
         }
-        fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<burn::tensor::Tensor<D>>) {
+        fn visit_float<const D: usize>(
+            &mut self,
+            param: &burn::module::Param<burn::tensor::Tensor<D>>,
+        ) {
             let leaf = self.path.last().map(String::as_str);
             if !matches!(leaf, Some("running_mean" | "running_var")) {
                 self.count += param.lazy_shape().num_elements();
             }
         }
     }
-    let mut c = Counter { path: Vec::new(), count: 0 };
+    let mut c = Counter {
+        path: Vec::new(),
+        count: 0,
+    };
     model.visit(&mut c);
     c.count
 }
@@ -291,14 +390,35 @@ mod tests {
     #[test]
     fn official_key_inverts_the_table() {
         let cases = [
-            ("enc.1.blocks.0.cpe.conv.weight", "backbone.backbone.enc.enc1.block0.cpe.0.weight"),
-            ("enc.1.blocks.0.cpe.norm.gamma", "backbone.backbone.enc.enc1.block0.cpe.2.weight"),
-            ("dec.3.up.proj_skip.norm.running_var", "backbone.backbone.dec.dec3.up.proj_skip.1.running_var"),
-            ("dec.0.up.proj.linear.weight", "backbone.backbone.dec.dec0.up.proj.0.weight"),
-            ("enc.2.down.norm.beta", "backbone.backbone.enc.enc2.down.norm.0.bias"),
-            ("embedding.norm.running_mean", "backbone.backbone.embedding.1.running_mean"),
+            (
+                "enc.1.blocks.0.cpe.conv.weight",
+                "backbone.backbone.enc.enc1.block0.cpe.0.weight",
+            ),
+            (
+                "enc.1.blocks.0.cpe.norm.gamma",
+                "backbone.backbone.enc.enc1.block0.cpe.2.weight",
+            ),
+            (
+                "dec.3.up.proj_skip.norm.running_var",
+                "backbone.backbone.dec.dec3.up.proj_skip.1.running_var",
+            ),
+            (
+                "dec.0.up.proj.linear.weight",
+                "backbone.backbone.dec.dec0.up.proj.0.weight",
+            ),
+            (
+                "enc.2.down.norm.beta",
+                "backbone.backbone.enc.enc2.down.norm.0.bias",
+            ),
+            (
+                "embedding.norm.running_mean",
+                "backbone.backbone.embedding.1.running_mean",
+            ),
             ("head.fc3.bias", "head.4.bias"),
-            ("dec.0.blocks.1.mlp.fc2.weight", "backbone.backbone.dec.dec0.block1.mlp.0.fc2.weight"),
+            (
+                "dec.0.blocks.1.mlp.fc2.weight",
+                "backbone.backbone.dec.dec0.block1.mlp.0.fc2.weight",
+            ),
             ("ff_type_embed", "ff_type_embed"),
         ];
         let remap = KeyRemapper::from_patterns(KEY_TABLE.to_vec()).expect("valid regexes");

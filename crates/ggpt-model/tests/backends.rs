@@ -2,6 +2,7 @@
 //! forward <= 1e-4, gradients <= 1e-3, finite gradients for every parameter, and a few Adam
 //! steps that reduce a simple loss. All wgpu work lives in this one test binary and is kept
 //! small (the first kernel compilation on lavapipe is slow).
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
 
@@ -32,13 +33,24 @@ fn synthetic_chunk(k: usize, seed: u64) -> ChunkInput {
     let mut c = ChunkInput::default();
     let side = (k as f32).sqrt().ceil() as usize;
     for i in 0..k {
-        let (u, v) = ((i % side) as f32 / side as f32, (i / side) as f32 / side as f32);
-        let p = [u * 1.6 - 0.8, v * 1.6 - 0.8, 0.3 * (3.0 * u).sin() * (2.0 * v).cos() + 0.01 * next()];
+        let (u, v) = (
+            (i % side) as f32 / side as f32,
+            (i / side) as f32 / side as f32,
+        );
+        let p = [
+            u * 1.6 - 0.8,
+            v * 1.6 - 0.8,
+            0.3 * (3.0 * u).sin() * (2.0 * v).cos() + 0.01 * next(),
+        ];
         c.ff_pts.push(p);
         c.ff_conf.push(1.0 + 3.0 * next());
         let g = next() < 0.3;
         c.geo_msk.push(g);
-        c.geo_pts.push(if g { [p[0] + 0.004 * next(), p[1], p[2] - 0.004 * next()] } else { [5.0 * next(); 3] });
+        c.geo_pts.push(if g {
+            [p[0] + 0.004 * next(), p[1], p[2] - 0.004 * next()]
+        } else {
+            [5.0 * next(); 3]
+        });
     }
     c
 }
@@ -47,7 +59,11 @@ fn synthetic_chunk(k: usize, seed: u64) -> ChunkInput {
 /// every device through a burnpack file so all backends hold identical parameters.
 fn models_on(cfg: &GgptConfig, devices: &[Device], fixture_weights: bool) -> Vec<Ggpt> {
     let reference = ndarray();
-    let mut model = if fixture_weights { small_model(&reference) } else { Ggpt::new(cfg, &reference) };
+    let mut model = if fixture_weights {
+        small_model(&reference)
+    } else {
+        Ggpt::new(cfg, &reference)
+    };
     if !fixture_weights {
         model.head.fc3 = LinearConfig::new(cfg.head_width, 4).init(&reference);
     }
@@ -84,7 +100,10 @@ impl ModuleVisitor for GradCollector<'_> {
     }
     fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
         // BatchNorm running statistics are buffers, not trainable: no gradient expected.
-        if matches!(self.path.last().map(String::as_str), Some("running_mean" | "running_var")) {
+        if matches!(
+            self.path.last().map(String::as_str),
+            Some("running_mean" | "running_var")
+        ) {
             return;
         }
         let g = param.val().grad(self.grads).map(|g| values(&g));
@@ -97,14 +116,25 @@ fn loss_of(model: &Ggpt, batch: &PreparedBatch) -> Tensor<1> {
     let out = model.forward(batch);
     let target = batch.coord.clone().add_scalar(0.05);
     let d = out.tokens_xyz - target;
-    (d.clone() * d).mean().add(out.tokens_conf.log().mean().mul_scalar(0.1))
+    (d.clone() * d)
+        .mean()
+        .add(out.tokens_conf.log().mean().mul_scalar(0.1))
 }
 
-fn gradients(model: &Ggpt, chunks: &[ChunkInput], cfg: &GgptConfig, device: &Device) -> Vec<(String, Option<Vec<f32>>)> {
+fn gradients(
+    model: &Ggpt,
+    chunks: &[ChunkInput],
+    cfg: &GgptConfig,
+    device: &Device,
+) -> Vec<(String, Option<Vec<f32>>)> {
     let batch = prepare_chunks(cfg, chunks, device).expect("plan");
     let loss = loss_of(model, &batch);
     let grads = loss.backward();
-    let mut c = GradCollector { grads: &grads, path: Vec::new(), out: Vec::new() };
+    let mut c = GradCollector {
+        grads: &grads,
+        path: Vec::new(),
+        out: Vec::new(),
+    };
     model.visit(&mut c);
     c.out
 }
@@ -115,7 +145,13 @@ fn tiny_cfg() -> GgptConfig {
     cfg
 }
 
-fn compare_forward(cfg: &GgptConfig, chunks: &[ChunkInput], devices: &[Device], names: &[&str], fixture: bool) -> Vec<String> {
+fn compare_forward(
+    cfg: &GgptConfig,
+    chunks: &[ChunkInput],
+    devices: &[Device],
+    names: &[&str],
+    fixture: bool,
+) -> Vec<String> {
     let models = models_on(cfg, devices, fixture);
     let mut results = Vec::new();
     for (m, d) in models.iter().zip(devices) {
@@ -125,23 +161,40 @@ fn compare_forward(cfg: &GgptConfig, chunks: &[ChunkInput], devices: &[Device], 
     let mut failures = Vec::new();
     for i in 1..results.len() {
         let (diff, at) = max_abs_diff(&results[0], &results[i]);
-        eprintln!("forward {} vs ndarray: max |Δ| = {diff:.2e} at {at}", names[i]);
+        eprintln!(
+            "forward {} vs ndarray: max |Δ| = {diff:.2e} at {at}",
+            names[i]
+        );
         if diff > 1e-4 {
-            failures.push(format!("forward {} vs ndarray: max |Δ| = {diff:e} at {at}", names[i]));
+            failures.push(format!(
+                "forward {} vs ndarray: max |Δ| = {diff:e} at {at}",
+                names[i]
+            ));
         }
     }
     failures
 }
 
-fn compare_gradients(cfg: &GgptConfig, chunks: &[ChunkInput], devices: &[Device], names: &[&str]) -> Vec<String> {
+fn compare_gradients(
+    cfg: &GgptConfig,
+    chunks: &[ChunkInput],
+    devices: &[Device],
+    names: &[&str],
+) -> Vec<String> {
     let ad: Vec<Device> = devices.iter().map(|d| d.clone().autodiff()).collect();
     let models = models_on(cfg, &ad, false);
-    let grads: Vec<_> = models.iter().zip(&ad).map(|(m, d)| gradients(m, chunks, cfg, d)).collect();
+    let grads: Vec<_> = models
+        .iter()
+        .zip(&ad)
+        .map(|(m, d)| gradients(m, chunks, cfg, d))
+        .collect();
     let mut failures = Vec::new();
     for (path, g) in &grads[0] {
         match g {
             None => failures.push(format!("{path}: no gradient on ndarray")),
-            Some(g) if g.iter().any(|x| !x.is_finite()) => failures.push(format!("{path}: non-finite gradient")),
+            Some(g) if g.iter().any(|x| !x.is_finite()) => {
+                failures.push(format!("{path}: non-finite gradient"))
+            }
             _ => {}
         }
     }
@@ -152,7 +205,10 @@ fn compare_gradients(cfg: &GgptConfig, chunks: &[ChunkInput], devices: &[Device]
                 let (d, at) = max_abs_diff(a, b);
                 worst = worst.max(d);
                 if d > 1e-3 {
-                    failures.push(format!("grad {path} {} vs ndarray: max |Δ| = {d:e} at {at}", names[i]));
+                    failures.push(format!(
+                        "grad {path} {} vs ndarray: max |Δ| = {d:e} at {at}",
+                        names[i]
+                    ));
                 }
             } else {
                 failures.push(format!("grad {path}: missing on {}", names[i]));
@@ -175,7 +231,13 @@ fn cpu_backends_agree_forward_and_gradients() {
     failures.extend(compare_gradients(&tiny_cfg(), &chunks, &devices, &names));
     // small config with the fixture weights on fixture chunk 1
     let fixture = fixture_chunks();
-    failures.extend(compare_forward(&GgptConfig::small(), &fixture[1..], &devices, &names, true));
+    failures.extend(compare_forward(
+        &GgptConfig::small(),
+        &fixture[1..],
+        &devices,
+        &names,
+        true,
+    ));
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
 
@@ -195,7 +257,10 @@ fn adam_steps_reduce_the_loss() {
     }
     let last = values(&loss_of(&model, &batch))[0];
     assert!(losses.iter().all(|l| l.is_finite()));
-    assert!(last < losses[0], "loss did not decrease: {losses:?} -> {last}");
+    assert!(
+        last < losses[0],
+        "loss did not decrease: {losses:?} -> {last}"
+    );
 }
 
 #[cfg(feature = "wgpu")]
@@ -208,6 +273,12 @@ fn wgpu_agrees_with_ndarray() {
     let mut failures = compare_forward(&tiny_cfg(), &chunks, &devices, &names, false);
     failures.extend(compare_gradients(&tiny_cfg(), &chunks, &devices, &names));
     let fixture = fixture_chunks();
-    failures.extend(compare_forward(&GgptConfig::small(), &fixture[1..], &devices, &names, true));
+    failures.extend(compare_forward(
+        &GgptConfig::small(),
+        &fixture[1..],
+        &devices,
+        &names,
+        true,
+    ));
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }

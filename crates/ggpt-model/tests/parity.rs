@@ -1,5 +1,6 @@
 //! Parity with the official PyTorch fixtures (`shared/fixtures/ggpt_small`) on ndarray:
 //! every recorded intermediate and every output to 1e-4, each chunk alone and both batched.
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
 
@@ -21,7 +22,11 @@ fn device() -> Device {
 
 /// Output names of the fixture `outputs.safetensors`, with the values from a `ChunkOutput`.
 fn output_values(o: &ggpt_model::ChunkOutput) -> Vec<(&'static str, Vec<f32>)> {
-    let flat = |v: &[[f32; 3]]| v.iter().flat_map(|p| p.iter().copied()).collect::<Vec<f32>>();
+    let flat = |v: &[[f32; 3]]| {
+        v.iter()
+            .flat_map(|p| p.iter().copied())
+            .collect::<Vec<f32>>()
+    };
     vec![
         ("ff_pts_out", flat(&o.ff_pts_out)),
         ("ff_pts_conf_out", o.ff_pts_conf_out.clone()),
@@ -52,7 +57,9 @@ fn every_intermediate_and_output_matches_each_chunk_alone() {
         let prefix = format!("chunk{c}/");
         let mut compared = 0;
         for (name, view) in inter.tensors() {
-            let Some(short) = name.strip_prefix(&prefix) else { continue };
+            let Some(short) = name.strip_prefix(&prefix) else {
+                continue;
+            };
             if view.dtype() != Dtype::F32 {
                 continue;
             }
@@ -61,7 +68,11 @@ fn every_intermediate_and_output_matches_each_chunk_alone() {
                 failures.push(format!("{name}: not produced by the port"));
                 continue;
             };
-            let tol = if short.starts_with("input.") { TOL_INPUT } else { TOL };
+            let tol = if short.starts_with("input.") {
+                TOL_INPUT
+            } else {
+                TOL
+            };
             let ours = values(ours);
             let (d, _) = max_abs_diff(&ours, &reference);
             report.push(format!("{name}: {d:.2e}"));
@@ -70,7 +81,10 @@ fn every_intermediate_and_output_matches_each_chunk_alone() {
             }
             compared += 1;
         }
-        assert!(compared >= 58, "chunk{c}: only {compared} intermediates compared");
+        assert!(
+            compared >= 58,
+            "chunk{c}: only {compared} intermediates compared"
+        );
         let per_chunk = output.to_chunks(&batch).expect("outputs");
         for (name, ours) in output_values(&per_chunk[0]) {
             let full = format!("{prefix}{name}");
@@ -82,7 +96,12 @@ fn every_intermediate_and_output_matches_each_chunk_alone() {
         }
     }
     eprintln!("{}", report.join("\n"));
-    assert!(failures.is_empty(), "{} mismatches:\n{}", failures.len(), failures.join("\n"));
+    assert!(
+        failures.is_empty(),
+        "{} mismatches:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
 }
 
 #[test]
@@ -98,12 +117,25 @@ fn batched_forward_matches_single_chunk_forwards() {
     assert_eq!(batched.len(), 2);
     let mut failures = Vec::new();
     for (c, chunk) in chunks.iter().enumerate() {
-        let single_batch = prepare_chunks(&cfg, std::slice::from_ref(chunk), &device).expect("plan");
-        let single = model.forward(&single_batch).to_chunks(&single_batch).expect("outputs");
-        for ((name, b), (_, s)) in output_values(&batched[c]).into_iter().zip(output_values(&single[0])) {
+        let single_batch =
+            prepare_chunks(&cfg, std::slice::from_ref(chunk), &device).expect("plan");
+        let single = model
+            .forward(&single_batch)
+            .to_chunks(&single_batch)
+            .expect("outputs");
+        for ((name, b), (_, s)) in output_values(&batched[c])
+            .into_iter()
+            .zip(output_values(&single[0]))
+        {
             let full = format!("chunk{c}/{name}");
             let (shape, reference) = fixture_f32(&outs, &full);
-            if let Some(f) = compare(&format!("{full} (batched vs fixture)"), &b, &reference, &shape, TOL) {
+            if let Some(f) = compare(
+                &format!("{full} (batched vs fixture)"),
+                &b,
+                &reference,
+                &shape,
+                TOL,
+            ) {
                 failures.push(f);
             }
             if let Some(f) = compare(&format!("{full} (batched vs single)"), &b, &s, &shape, 1e-5) {

@@ -2,29 +2,44 @@
 //! duplicate voxels (network.md §6.4, fixture `spconv_duplicates`): a plain-Rust reference
 //! convolution over the tables must reproduce spconv's outputs, and the pair sets must equal
 //! spconv's raw pair tables.
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 use std::collections::BTreeSet;
 
 use ggpt_model::plan::{CENTER_TAP, ConvTable, NUM_TAPS, build_conv_table};
 use safetensors::{Dtype, SafeTensors};
 
-const FIXTURE: &str =
-    concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/fixtures/spconv_duplicates/spconv_duplicates.safetensors");
+const FIXTURE: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../../../shared/fixtures/spconv_duplicates/spconv_duplicates.safetensors"
+);
 
 fn tensor<'a>(st: &'a SafeTensors, key: &str, dtype: Dtype) -> (Vec<usize>, &'a [u8]) {
-    let t = st.tensor(key).unwrap_or_else(|e| panic!("{FIXTURE}: key {key}: {e}"));
+    let t = st
+        .tensor(key)
+        .unwrap_or_else(|e| panic!("{FIXTURE}: key {key}: {e}"));
     assert_eq!(t.dtype(), dtype, "{key} dtype");
     (t.shape().to_vec(), t.data())
 }
 
 fn f32s(st: &SafeTensors, key: &str) -> (Vec<usize>, Vec<f32>) {
     let (s, d) = tensor(st, key, Dtype::F32);
-    (s, d.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect())
+    (
+        s,
+        d.chunks_exact(4)
+            .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+            .collect(),
+    )
 }
 
 fn i32s(st: &SafeTensors, key: &str) -> (Vec<usize>, Vec<i32>) {
     let (s, d) = tensor(st, key, Dtype::I32);
-    (s, d.chunks_exact(4).map(|b| i32::from_le_bytes(b.try_into().unwrap())).collect())
+    (
+        s,
+        d.chunks_exact(4)
+            .map(|b| i32::from_le_bytes(b.try_into().unwrap()))
+            .collect(),
+    )
 }
 
 /// Grid and per-chunk exclusive ends from spconv's `[P, 4]` (batch, x, y, z) indices.
@@ -33,7 +48,10 @@ fn grid_and_offsets(indices: &[i32]) -> (Vec<[i32; 3]>, Vec<usize>) {
     let mut offsets = Vec::new();
     for (q, r) in rows.iter().enumerate() {
         let b = r[0] as usize;
-        assert!(b + 1 >= offsets.len(), "points must be grouped by batch index");
+        assert!(
+            b + 1 >= offsets.len(),
+            "points must be grouped by batch index"
+        );
         while offsets.len() <= b {
             offsets.push(q);
         }
@@ -44,7 +62,13 @@ fn grid_and_offsets(indices: &[i32]) -> (Vec<[i32; 3]>, Vec<usize>) {
 }
 
 /// `out = bias + sum_f W_f in[source]` over the tables (KRSC weight `[C_out, 27, C_in]`), f32 loops.
-fn reference_conv(table: &ConvTable, input: &[f32], c_in: usize, weight: &[f32], bias: &[f32]) -> Vec<f32> {
+fn reference_conv(
+    table: &ConvTable,
+    input: &[f32],
+    c_in: usize,
+    weight: &[f32],
+    bias: &[f32],
+) -> Vec<f32> {
     let c_out = bias.len();
     let n = input.len() / c_in;
     let mut out: Vec<f32> = (0..n).flat_map(|_| bias.iter().copied()).collect();
@@ -52,7 +76,11 @@ fn reference_conv(table: &ConvTable, input: &[f32], c_in: usize, weight: &[f32],
         for (&t, &s) in tap.target.iter().zip(&tap.source) {
             for o in 0..c_out {
                 let w = &weight[(o * NUM_TAPS + f) * c_in..(o * NUM_TAPS + f + 1) * c_in];
-                out[t * c_out + o] += w.iter().zip(&input[s * c_in..(s + 1) * c_in]).map(|(a, b)| a * b).sum::<f32>();
+                out[t * c_out + o] += w
+                    .iter()
+                    .zip(&input[s * c_in..(s + 1) * c_in])
+                    .map(|(a, b)| a * b)
+                    .sum::<f32>();
             }
         }
     }
@@ -75,7 +103,11 @@ fn reference_conv_over_tables_matches_spconv() {
         for key in ["output", "rule_output"] {
             let (_, expect) = f32s(&st, &format!("{case}.{key}"));
             let m = expect.iter().fold(1.0f32, |a, v| a.max(v.abs()));
-            let d = got.iter().zip(&expect).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+            let d = got
+                .iter()
+                .zip(&expect)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
             assert_eq!(got.len(), expect.len());
             assert!(d <= 1e-5 * m, "{case}.{key}: max abs diff {d} (max {m})");
         }
@@ -96,13 +128,30 @@ fn pair_sets_match_spconv_raw_tables() {
         let (_, num) = i32s(&st, &format!("{case}.indice_pair_num"));
         let p = pshape[2];
         for f in 0..NUM_TAPS {
-            let count = if f > CENTER_TAP { num[NUM_TAPS - 1 - f] } else { num[f] } as usize;
+            let count = if f > CENTER_TAP {
+                num[NUM_TAPS - 1 - f]
+            } else {
+                num[f]
+            } as usize;
             let theirs: BTreeSet<(usize, usize)> = (0..count)
-                .map(|i| (pairs[(NUM_TAPS + f) * p + i] as usize, pairs[f * p + i] as usize))
+                .map(|i| {
+                    (
+                        pairs[(NUM_TAPS + f) * p + i] as usize,
+                        pairs[f * p + i] as usize,
+                    )
+                })
                 .collect();
-            let ours: BTreeSet<(usize, usize)> =
-                table.taps[f].target.iter().copied().zip(table.taps[f].source.iter().copied()).collect();
-            assert_eq!(ours.len(), table.taps[f].len(), "{case} tap {f}: duplicate pairs");
+            let ours: BTreeSet<(usize, usize)> = table.taps[f]
+                .target
+                .iter()
+                .copied()
+                .zip(table.taps[f].source.iter().copied())
+                .collect();
+            assert_eq!(
+                ours.len(),
+                table.taps[f].len(),
+                "{case} tap {f}: duplicate pairs"
+            );
             if f == CENTER_TAP && theirs.len() != ours.len() {
                 // spconv may list the centre tap per voxel only; the rule fixes it to the identity.
                 assert!(ours.iter().all(|&(a, b)| a == b), "{case} centre tap");

@@ -1,4 +1,5 @@
 //! Checkpoint loading: official `.pth` / `.safetensors` strictly, rejection messages, burnpack.
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
 
@@ -27,16 +28,27 @@ fn outputs_of(model: &Ggpt, device: &Device) -> Vec<f32> {
 #[test]
 fn parameter_counts_match_spec() {
     let device = device();
-    assert_eq!(num_trainable_params(&Ggpt::new(&GgptConfig::small(), &device)), 623_772);
-    assert_eq!(num_trainable_params(&Ggpt::new(&GgptConfig::released(), &device)), 53_409_828);
+    assert_eq!(
+        num_trainable_params(&Ggpt::new(&GgptConfig::small(), &device)),
+        623_772
+    );
+    assert_eq!(
+        num_trainable_params(&Ggpt::new(&GgptConfig::released(), &device)),
+        53_409_828
+    );
 }
 
 #[test]
 fn pth_and_safetensors_load_strictly_and_agree() {
     let device = device();
     let cfg = GgptConfig::small();
-    let st = load_checkpoint(Ggpt::new(&cfg, &device), &small_dir().join("weights.safetensors")).expect("safetensors loads");
-    let pth = load_checkpoint(Ggpt::new(&cfg, &device), &small_dir().join("weights.pth")).expect("pth loads");
+    let st = load_checkpoint(
+        Ggpt::new(&cfg, &device),
+        &small_dir().join("weights.safetensors"),
+    )
+    .expect("safetensors loads");
+    let pth = load_checkpoint(Ggpt::new(&cfg, &device), &small_dir().join("weights.pth"))
+        .expect("pth loads");
     let a = outputs_of(&st, &device);
     let b = outputs_of(&pth, &device);
     assert_eq!(a, b, "pth and safetensors weights give different outputs");
@@ -69,18 +81,30 @@ fn load_modified(edit: impl Fn(&mut Vec<(String, Dtype, Vec<usize>, Vec<u8>)>)) 
 
 #[test]
 fn missing_key_is_rejected_by_name() {
-    let err = load_modified(|e| e.retain(|(n, ..)| n != "backbone.backbone.enc.enc2.block1.attn.qkv.weight"));
+    let err = load_modified(|e| {
+        e.retain(|(n, ..)| n != "backbone.backbone.enc.enc2.block1.attn.qkv.weight")
+    });
     let msg = err.to_string();
-    assert!(msg.contains("backbone.backbone.enc.enc2.block1.attn.qkv.weight"), "{msg}");
-    assert!(matches!(err, ModelError::CheckpointMismatch { ref missing, .. } if missing.len() == 1), "{msg}");
+    assert!(
+        msg.contains("backbone.backbone.enc.enc2.block1.attn.qkv.weight"),
+        "{msg}"
+    );
+    assert!(
+        matches!(err, ModelError::CheckpointMismatch { ref missing, .. } if missing.len() == 1),
+        "{msg}"
+    );
 }
 
 #[test]
 fn extra_key_is_rejected_by_name() {
-    let err = load_modified(|e| e.push(("head.6.weight".into(), Dtype::F32, vec![2], vec![0u8; 8])));
+    let err =
+        load_modified(|e| e.push(("head.6.weight".into(), Dtype::F32, vec![2], vec![0u8; 8])));
     let msg = err.to_string();
     assert!(msg.contains("head.6.weight"), "{msg}");
-    assert!(matches!(err, ModelError::CheckpointMismatch { ref unused, .. } if unused.len() == 1), "{msg}");
+    assert!(
+        matches!(err, ModelError::CheckpointMismatch { ref unused, .. } if unused.len() == 1),
+        "{msg}"
+    );
 }
 
 #[test]
@@ -95,7 +119,10 @@ fn misshaped_key_is_rejected_by_name() {
         }
     });
     let msg = err.to_string();
-    assert!(msg.contains("dec.1.blocks.0.cpe.conv.weight") || msg.contains("dec1.block0.cpe.0.weight"), "{msg}");
+    assert!(
+        msg.contains("dec.1.blocks.0.cpe.conv.weight") || msg.contains("dec1.block0.cpe.0.weight"),
+        "{msg}"
+    );
 }
 
 #[test]

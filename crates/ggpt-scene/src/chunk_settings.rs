@@ -88,15 +88,29 @@ impl ResolvedChunking {
 /// `ChunkParams::default()`, for the CLI). Flag values are validated here (`flag_name` names
 /// them in the message, e.g. `chunk_size` -> `--chunk-size`); the model's values were validated
 /// when its file was read. Fields not exposed (`max_chunks_after_converge`) come from `base`.
-pub fn resolve_chunking(base: &ChunkParams, model: Option<(&Path, Option<&ChunkingSettings>)>, flags: &ChunkingSettings, flag_name: impl Fn(&str) -> String) -> Result<ResolvedChunking, SceneError> {
+pub fn resolve_chunking(
+    base: &ChunkParams,
+    model: Option<(&Path, Option<&ChunkingSettings>)>,
+    flags: &ChunkingSettings,
+    flag_name: impl Fn(&str) -> String,
+) -> Result<ResolvedChunking, SceneError> {
     flags.validate(flag_name).map_err(SceneError::Invalid)?;
     let model_json = model.map(|(path, _)| path.to_path_buf());
     let model = model.and_then(|(_, c)| c.copied()).unwrap_or_default();
     fn pick<T: Copy>(flag: Option<T>, model: Option<T>, base: T) -> Resolved<T> {
         match (flag, model) {
-            (Some(value), _) => Resolved { value, origin: SettingOrigin::Flag },
-            (None, Some(value)) => Resolved { value, origin: SettingOrigin::Model },
-            (None, None) => Resolved { value: base, origin: SettingOrigin::Default },
+            (Some(value), _) => Resolved {
+                value,
+                origin: SettingOrigin::Flag,
+            },
+            (None, Some(value)) => Resolved {
+                value,
+                origin: SettingOrigin::Model,
+            },
+            (None, None) => Resolved {
+                value: base,
+                origin: SettingOrigin::Default,
+            },
         }
     }
     let chunk_size = pick(flags.chunk_size, model.chunk_size, base.chunk_size);
@@ -110,7 +124,14 @@ pub fn resolve_chunking(base: &ChunkParams, model: Option<(&Path, Option<&Chunki
         min_pixels: min_pixels.value,
         ..base.clone()
     };
-    Ok(ResolvedChunking { chunk_size, max_pixels, min_dlt, min_pixels, model_inference_json: model_json, params })
+    Ok(ResolvedChunking {
+        chunk_size,
+        max_pixels,
+        min_dlt,
+        min_pixels,
+        model_inference_json: model_json,
+        params,
+    })
 }
 
 #[cfg(test)]
@@ -132,40 +153,116 @@ mod tests {
         // No inference.json: everything is the default.
         let r = resolve_chunking(&base, None, &ChunkingSettings::default(), chunking_flag).unwrap();
         assert_eq!(r.params, base);
-        assert!([r.max_pixels.origin, r.min_dlt.origin, r.min_pixels.origin, r.chunk_size.origin].iter().all(|&o| o == SettingOrigin::Default));
+        assert!(
+            [
+                r.max_pixels.origin,
+                r.min_dlt.origin,
+                r.min_pixels.origin,
+                r.chunk_size.origin
+            ]
+            .iter()
+            .all(|&o| o == SettingOrigin::Default)
+        );
         assert_eq!(r.model_inference_json, None);
         // inference.json with two of the four fields; one flag overrides one of them.
         let path = PathBuf::from("model/inference.json");
-        let model = ChunkingSettings { max_pixels: Some(10000), min_pixels: Some(4000), ..ChunkingSettings::default() };
+        let model = ChunkingSettings {
+            max_pixels: Some(10000),
+            min_pixels: Some(4000),
+            ..ChunkingSettings::default()
+        };
         let spec = Some((path.as_path(), Some(&model)));
-        let flags = ChunkingSettings { min_pixels: Some(5000), chunk_size: Some(0.3), ..ChunkingSettings::default() };
+        let flags = ChunkingSettings {
+            min_pixels: Some(5000),
+            chunk_size: Some(0.3),
+            ..ChunkingSettings::default()
+        };
         let r = resolve_chunking(&base, spec, &flags, chunking_flag).unwrap();
-        assert_eq!(r.chunk_size, Resolved { value: 0.3, origin: SettingOrigin::Flag });
-        assert_eq!(r.max_pixels, Resolved { value: 10000, origin: SettingOrigin::Model });
-        assert_eq!(r.min_dlt, Resolved { value: 100, origin: SettingOrigin::Default });
-        assert_eq!(r.min_pixels, Resolved { value: 5000, origin: SettingOrigin::Flag });
+        assert_eq!(
+            r.chunk_size,
+            Resolved {
+                value: 0.3,
+                origin: SettingOrigin::Flag
+            }
+        );
+        assert_eq!(
+            r.max_pixels,
+            Resolved {
+                value: 10000,
+                origin: SettingOrigin::Model
+            }
+        );
+        assert_eq!(
+            r.min_dlt,
+            Resolved {
+                value: 100,
+                origin: SettingOrigin::Default
+            }
+        );
+        assert_eq!(
+            r.min_pixels,
+            Resolved {
+                value: 5000,
+                origin: SettingOrigin::Flag
+            }
+        );
         assert_eq!(
             r.params,
-            ChunkParams { chunk_size: 0.3, max_pixels: 10000, min_dlt: 100, min_pixels: 5000, max_chunks_after_converge: base.max_chunks_after_converge }
+            ChunkParams {
+                chunk_size: 0.3,
+                max_pixels: 10000,
+                min_dlt: 100,
+                min_pixels: 5000,
+                max_chunks_after_converge: base.max_chunks_after_converge
+            }
         );
         assert_eq!(r.model_inference_json.as_ref(), Some(&path));
         // config.json form: value + origin per field, the file path.
         let j = serde_json::to_value(&r).unwrap();
-        assert_eq!(j["max_pixels"], serde_json::json!({"value": 10000, "origin": "model inference.json"}));
+        assert_eq!(
+            j["max_pixels"],
+            serde_json::json!({"value": 10000, "origin": "model inference.json"})
+        );
         assert_eq!(j["chunk_size"]["origin"], "flag");
         assert_eq!(j["min_dlt"]["origin"], "default");
         assert_eq!(j["model_inference_json"], serde_json::json!(path));
         let line = r.describe();
-        assert!(line.contains("max_pixels 10000 (model inference.json)") && line.contains("chunk_size 0.3 (flag)") && line.contains("min_dlt 100 (default)"), "{line}");
+        assert!(
+            line.contains("max_pixels 10000 (model inference.json)")
+                && line.contains("chunk_size 0.3 (flag)")
+                && line.contains("min_dlt 100 (default)"),
+            "{line}"
+        );
         // The base layer is the caller's parameters (library users), not always the official ones.
-        let custom = ChunkParams { min_dlt: 40, max_chunks_after_converge: 7, ..ChunkParams::default() };
-        let r = resolve_chunking(&custom, spec, &ChunkingSettings::default(), chunking_flag).unwrap();
-        assert_eq!((r.params.min_dlt, r.params.max_chunks_after_converge, r.params.max_pixels), (40, 7, 10000));
+        let custom = ChunkParams {
+            min_dlt: 40,
+            max_chunks_after_converge: 7,
+            ..ChunkParams::default()
+        };
+        let r =
+            resolve_chunking(&custom, spec, &ChunkingSettings::default(), chunking_flag).unwrap();
+        assert_eq!(
+            (
+                r.params.min_dlt,
+                r.params.max_chunks_after_converge,
+                r.params.max_pixels
+            ),
+            (40, 7, 10000)
+        );
         // A model file without a chunking object, or with an empty one, changes nothing.
         let empty = ChunkingSettings::default();
         for layer in [(path.as_path(), None), (path.as_path(), Some(&empty))] {
-            let r = resolve_chunking(&base, Some(layer), &ChunkingSettings::default(), chunking_flag).unwrap();
-            assert_eq!((&r.params, r.model_inference_json.as_ref()), (&base, Some(&path)));
+            let r = resolve_chunking(
+                &base,
+                Some(layer),
+                &ChunkingSettings::default(),
+                chunking_flag,
+            )
+            .unwrap();
+            assert_eq!(
+                (&r.params, r.model_inference_json.as_ref()),
+                (&base, Some(&path))
+            );
         }
     }
 
@@ -176,11 +273,31 @@ mod tests {
         let spec = Some((path.as_path(), Some(&model)));
         // Bad flags name the flag.
         for (flags, want) in [
-            (ChunkingSettings { chunk_size: Some(f64::NAN), ..ChunkingSettings::default() }, "--chunk-size = NaN"),
-            (ChunkingSettings { chunk_size: Some(-0.1), ..ChunkingSettings::default() }, "--chunk-size = -0.1"),
-            (ChunkingSettings { max_pixels: Some(0), ..ChunkingSettings::default() }, "--max-chunk-pixels = 0"),
+            (
+                ChunkingSettings {
+                    chunk_size: Some(f64::NAN),
+                    ..ChunkingSettings::default()
+                },
+                "--chunk-size = NaN",
+            ),
+            (
+                ChunkingSettings {
+                    chunk_size: Some(-0.1),
+                    ..ChunkingSettings::default()
+                },
+                "--chunk-size = -0.1",
+            ),
+            (
+                ChunkingSettings {
+                    max_pixels: Some(0),
+                    ..ChunkingSettings::default()
+                },
+                "--max-chunk-pixels = 0",
+            ),
         ] {
-            let e = resolve_chunking(&ChunkParams::default(), spec, &flags, chunking_flag).unwrap_err().to_string();
+            let e = resolve_chunking(&ChunkParams::default(), spec, &flags, chunking_flag)
+                .unwrap_err()
+                .to_string();
             assert!(e.contains(want), "{e}");
         }
     }

@@ -48,7 +48,9 @@ pub struct PcgDraws {
 impl PcgDraws {
     /// Generator seeded with `seed`.
     pub fn new(seed: u64) -> Self {
-        PcgDraws { rng: Pcg64::seed_from_u64(seed) }
+        PcgDraws {
+            rng: Pcg64::seed_from_u64(seed),
+        }
     }
     /// Generator for a scene: seeded with `seed_override` when given (`--seed`), else with
     /// [`scene_seed`]`(scene_name)`.
@@ -59,7 +61,11 @@ impl PcgDraws {
 
 impl DrawSource for PcgDraws {
     fn draw(&mut self, n: usize) -> usize {
-        if n <= 1 { 0 } else { self.rng.random_range(0..n) }
+        if n <= 1 {
+            0
+        } else {
+            self.rng.random_range(0..n)
+        }
     }
 }
 
@@ -86,7 +92,13 @@ pub struct ChunkParams {
 
 impl Default for ChunkParams {
     fn default() -> Self {
-        ChunkParams { chunk_size: 0.2, max_pixels: 400_000, min_dlt: 100, min_pixels: 10_000, max_chunks_after_converge: 100 }
+        ChunkParams {
+            chunk_size: 0.2,
+            max_pixels: 400_000,
+            min_dlt: 100,
+            min_pixels: 10_000,
+            max_chunks_after_converge: 100,
+        }
     }
 }
 
@@ -113,7 +125,9 @@ impl ChunkInputs<'_> {
             check_len("chunker: region-of-interest mask", f.len(), p)?;
         }
         if u32::try_from(p).is_err() {
-            return Err(SceneError::Invalid(format!("chunker: {p} pixels exceed the u32 pixel-index range")));
+            return Err(SceneError::Invalid(format!(
+                "chunker: {p} pixels exceed the u32 pixel-index range"
+            )));
         }
         Ok(p)
     }
@@ -197,9 +211,17 @@ pub struct ChunkSampler<'a> {
 
 impl<'a> ChunkSampler<'a> {
     /// New sampler over `inputs` with scene radius `scene_radius` (scene units, §4).
-    pub fn new(inputs: ChunkInputs<'a>, scene_radius: f64, params: ChunkParams) -> Result<Self, SceneError> {
+    pub fn new(
+        inputs: ChunkInputs<'a>,
+        scene_radius: f64,
+        params: ChunkParams,
+    ) -> Result<Self, SceneError> {
         inputs.pixels()?;
-        if !scene_radius.is_finite() || scene_radius < 0.0 || !params.chunk_size.is_finite() || params.chunk_size <= 0.0 {
+        if !scene_radius.is_finite()
+            || scene_radius < 0.0
+            || !params.chunk_size.is_finite()
+            || params.chunk_size <= 0.0
+        {
             return Err(SceneError::Invalid(format!(
                 "chunker: scene radius {scene_radius} and chunk_size {} must be finite, radius >= 0, chunk_size > 0",
                 params.chunk_size
@@ -217,7 +239,11 @@ impl<'a> ChunkSampler<'a> {
             n_uncovered,
             fails: 0,
             n_chunks: 0,
-            stop: if n_uncovered == 0 { Some(StopReason::AllCovered) } else { None },
+            stop: if n_uncovered == 0 {
+                Some(StopReason::AllCovered)
+            } else {
+                None
+            },
             attempts: Vec::new(),
             scratch: Vec::new(),
         })
@@ -263,7 +289,9 @@ impl<'a> ChunkSampler<'a> {
         let n_unc = self.n_uncovered;
         let j = draws.draw(n_unc);
         if j >= n_unc {
-            return Err(SceneError::Invalid(format!("chunker: draw source returned {j} for a draw in [0, {n_unc})")));
+            return Err(SceneError::Invalid(format!(
+                "chunker: draw source returned {j} for a draw in [0, {n_unc})"
+            )));
         }
         let centre_pixel = self
             .uncovered
@@ -272,7 +300,9 @@ impl<'a> ChunkSampler<'a> {
             .filter(|(_, u)| **u)
             .nth(j)
             .map(|(p, _)| p)
-            .ok_or_else(|| SceneError::Invalid(format!("chunker: uncovered pixel #{j} not found")))?;
+            .ok_or_else(|| {
+                SceneError::Invalid(format!("chunker: uncovered pixel #{j} not found"))
+            })?;
         let c = point(self.inputs.dlt_points, centre_pixel);
         let mut r = self.params.chunk_size * self.scene_radius;
         let mut shrinks = 0u32;
@@ -293,7 +323,16 @@ impl<'a> ChunkSampler<'a> {
             shrinks += 1;
         }
         let n_pix = mask.len();
-        let n_dlt = mask.iter().filter(|&&p| self.inputs.dlt_mask.get(p as usize).copied().unwrap_or(false)).count();
+        let n_dlt = mask
+            .iter()
+            .filter(|&&p| {
+                self.inputs
+                    .dlt_mask
+                    .get(p as usize)
+                    .copied()
+                    .unwrap_or(false)
+            })
+            .count();
         let mut attempt = Attempt {
             uncovered: n_unc,
             draw: j,
@@ -307,7 +346,10 @@ impl<'a> ChunkSampler<'a> {
         };
         let mut out = None;
         if degenerate {
-            tracing::warn!("chunker: more than {} points coincide with the chunk centre (pixel {centre_pixel}); attempt rejected", self.params.max_pixels);
+            tracing::warn!(
+                "chunker: more than {} points coincide with the chunk centre (pixel {centre_pixel}); attempt rejected",
+                self.params.max_pixels
+            );
             self.fails += 1;
         } else if n_dlt < self.m_dlt {
             self.m_dlt = (n_dlt / 2).max(self.params.min_dlt / MIN_COUNT_FLOOR_DIVISOR);
@@ -317,7 +359,10 @@ impl<'a> ChunkSampler<'a> {
             self.fails += 1;
         } else {
             self.fails = 0;
-            let newly = mask.iter().filter(|&&p| self.uncovered.get(p as usize).copied().unwrap_or(false)).count();
+            let newly = mask
+                .iter()
+                .filter(|&&p| self.uncovered.get(p as usize).copied().unwrap_or(false))
+                .count();
             if self.n_chunks >= self.params.max_chunks_after_converge && newly == 0 {
                 self.stop = Some(StopReason::Converged);
             } else {
@@ -328,7 +373,14 @@ impl<'a> ChunkSampler<'a> {
                 }
                 self.n_uncovered -= newly;
                 attempt.accepted = true;
-                out = Some(Chunk { index: self.n_chunks, pixels: mask.clone(), center: c, center_pixel: centre_pixel as u32, radius: r, n_dlt });
+                out = Some(Chunk {
+                    index: self.n_chunks,
+                    pixels: mask.clone(),
+                    center: c,
+                    center_pixel: centre_pixel as u32,
+                    radius: r,
+                    n_dlt,
+                });
                 self.n_chunks += 1;
             }
         }
@@ -370,7 +422,13 @@ pub fn box_bounds(c: [f32; 3], r: f64) -> ([f32; 3], [f32; 3]) {
 /// Closed L∞ box test `lo <= x <= hi` on all three axes.
 #[inline]
 fn in_box(x: &[f32], lo: [f32; 3], hi: [f32; 3]) -> bool {
-    x.len() == 3 && lo[0] <= x[0] && x[0] <= hi[0] && lo[1] <= x[1] && x[1] <= hi[1] && lo[2] <= x[2] && x[2] <= hi[2]
+    x.len() == 3
+        && lo[0] <= x[0]
+        && x[0] <= hi[0]
+        && lo[1] <= x[1]
+        && x[1] <= hi[1]
+        && lo[2] <= x[2]
+        && x[2] <= hi[2]
 }
 
 fn box_is_point(c: [f32; 3], r32: f32) -> bool {
@@ -398,23 +456,45 @@ pub struct ChunkSet {
 }
 
 /// Runs the sampler to the end (all chunks held in memory as pixel lists).
-pub fn sample_chunks(inputs: ChunkInputs<'_>, scene_radius: f64, params: &ChunkParams, draws: &mut dyn DrawSource) -> Result<ChunkSet, SceneError> {
+pub fn sample_chunks(
+    inputs: ChunkInputs<'_>,
+    scene_radius: f64,
+    params: &ChunkParams,
+    draws: &mut dyn DrawSource,
+) -> Result<ChunkSet, SceneError> {
     let mut s = ChunkSampler::new(inputs, scene_radius, params.clone())?;
     let mut chunks = Vec::new();
     while let Some(c) = s.next_chunk(draws)? {
         chunks.push(c);
     }
-    Ok(ChunkSet { chunks, uncovered: s.n_uncovered, stop: s.stop.unwrap_or(StopReason::AllCovered), attempts: s.attempts })
+    Ok(ChunkSet {
+        chunks,
+        uncovered: s.n_uncovered,
+        stop: s.stop.unwrap_or(StopReason::AllCovered),
+        attempts: s.attempts,
+    })
 }
 
 /// One training chunk (`pipeline.md` §11.2, **[project]**): centre = a uniformly drawn DLT pixel
 /// of the whole scene (no coverage bookkeeping: every DLT point may enter), `r = chunk_size R`,
 /// shrink while over `max_pixels`, accept with ≥ `min_dlt` DLT pixels and ≥ `min_pixels` pixels;
 /// up to [`MAX_CONSECUTIVE_FAILURES`] draws, `None` when all fail.
-pub fn sample_training_chunk(inputs: ChunkInputs<'_>, scene_radius: f64, params: &ChunkParams, draws: &mut dyn DrawSource) -> Result<Option<Chunk>, SceneError> {
+pub fn sample_training_chunk(
+    inputs: ChunkInputs<'_>,
+    scene_radius: f64,
+    params: &ChunkParams,
+    draws: &mut dyn DrawSource,
+) -> Result<Option<Chunk>, SceneError> {
     for _ in 0..MAX_CONSECUTIVE_FAILURES {
         // A fresh sampler per draw keeps U = M_s and the minimums at their defaults.
-        let mut s = ChunkSampler::new(inputs, scene_radius, ChunkParams { max_chunks_after_converge: usize::MAX, ..params.clone() })?;
+        let mut s = ChunkSampler::new(
+            inputs,
+            scene_radius,
+            ChunkParams {
+                max_chunks_after_converge: usize::MAX,
+                ..params.clone()
+            },
+        )?;
         if s.stop.is_some() {
             return Ok(None);
         }
@@ -444,15 +524,36 @@ pub(crate) mod tests_support {
 
     /// `sfm_small` sampler parameters.
     pub(crate) fn fixture_params() -> ChunkParams {
-        ChunkParams { max_pixels: 1200, min_dlt: 40, min_pixels: 300, ..ChunkParams::default() }
+        ChunkParams {
+            max_pixels: 1200,
+            min_dlt: 40,
+            min_pixels: 300,
+            ..ChunkParams::default()
+        }
     }
 
     /// The fixture's chunks, replayed from the recorded draws.
-    pub(crate) fn replay_fixture_chunks(steps: &Fixture, aligned: &[f32], dlt: &[f32], msk: &[bool]) -> Vec<Chunk> {
+    pub(crate) fn replay_fixture_chunks(
+        steps: &Fixture,
+        aligned: &[f32],
+        dlt: &[f32],
+        msk: &[bool],
+    ) -> Vec<Chunk> {
         let radius = steps.f64("sim3/radius")[0];
-        let draws: Vec<usize> = steps.i64("chunks/attempt_draw").iter().map(|&d| d as usize).collect();
-        let inputs = ChunkInputs { ff_points: aligned, dlt_points: dlt, dlt_mask: msk, roi: None };
-        sample_chunks(inputs, radius, &fixture_params(), &mut Replay(draws, 0)).unwrap().chunks
+        let draws: Vec<usize> = steps
+            .i64("chunks/attempt_draw")
+            .iter()
+            .map(|&d| d as usize)
+            .collect();
+        let inputs = ChunkInputs {
+            ff_points: aligned,
+            dlt_points: dlt,
+            dlt_mask: msk,
+            roi: None,
+        };
+        sample_chunks(inputs, radius, &fixture_params(), &mut Replay(draws, 0))
+            .unwrap()
+            .chunks
     }
 }
 
@@ -466,7 +567,10 @@ mod tests {
     fn crc32_seeds() {
         assert_eq!(scene_seed("demo"), 3594706848);
         assert_eq!(scene_seed("scannetpp-9bb22982672c69bf"), 4072360503);
-        assert_eq!(scene_seed("synth_room_s0") as i64, Fixture::sfm_steps().i64("chunks/seed")[0]);
+        assert_eq!(
+            scene_seed("synth_room_s0") as i64,
+            Fixture::sfm_steps().i64("chunks/seed")[0]
+        );
     }
 
     #[test]
@@ -476,10 +580,24 @@ mod tests {
         let dlt = steps.f32("scatter/points");
         let msk = steps.bool("scatter/point_masks");
         let radius = steps.f64("sim3/radius")[0];
-        let params = ChunkParams { max_pixels: 1200, min_dlt: 40, min_pixels: 300, ..ChunkParams::default() };
-        let draws: Vec<usize> = steps.i64("chunks/attempt_draw").iter().map(|&d| d as usize).collect();
+        let params = ChunkParams {
+            max_pixels: 1200,
+            min_dlt: 40,
+            min_pixels: 300,
+            ..ChunkParams::default()
+        };
+        let draws: Vec<usize> = steps
+            .i64("chunks/attempt_draw")
+            .iter()
+            .map(|&d| d as usize)
+            .collect();
         let mut replay = Replay(draws.clone(), 0);
-        let inputs = ChunkInputs { ff_points: &aligned, dlt_points: &dlt, dlt_mask: &msk, roi: None };
+        let inputs = ChunkInputs {
+            ff_points: &aligned,
+            dlt_points: &dlt,
+            dlt_mask: &msk,
+            roi: None,
+        };
         let set = sample_chunks(inputs, radius, &params, &mut replay).unwrap();
         assert_eq!(replay.1, draws.len(), "all recorded draws consumed");
         let a = &set.attempts;
@@ -492,7 +610,10 @@ mod tests {
         let mff = steps.i64("chunks/attempt_min_ff_arg");
         let acc = steps.bool("chunks/attempt_accepted");
         for (i, at) in a.iter().enumerate() {
-            assert_eq!(at.uncovered as i64, tosample[i], "attempt {i} tosample_count");
+            assert_eq!(
+                at.uncovered as i64, tosample[i],
+                "attempt {i} tosample_count"
+            );
             assert_eq!(at.radius(), att_r[i], "attempt {i} radius");
             assert_eq!(at.n_pixels as i64, npx[i], "attempt {i} n_pixels");
             assert_eq!(at.n_dlt as i64, ngeo[i], "attempt {i} n_geo");
@@ -510,9 +631,18 @@ mod tests {
         let px = msk.len();
         for (k, ch) in set.chunks.iter().enumerate() {
             assert_eq!(ch.index, k);
-            assert_eq!(ch.center, [centres[3 * k], centres[3 * k + 1], centres[3 * k + 2]], "chunk {k} centre");
+            assert_eq!(
+                ch.center,
+                [centres[3 * k], centres[3 * k + 1], centres[3 * k + 2]],
+                "chunk {k} centre"
+            );
             assert_eq!(ch.radius, radii[k], "chunk {k} radius");
-            let want: Vec<u32> = masks[k * px..(k + 1) * px].iter().enumerate().filter(|(_, m)| **m).map(|(p, _)| p as u32).collect();
+            let want: Vec<u32> = masks[k * px..(k + 1) * px]
+                .iter()
+                .enumerate()
+                .filter(|(_, m)| **m)
+                .map(|(p, _)| p as u32)
+                .collect();
             assert_eq!(ch.pixels, want, "chunk {k} mask");
             assert!(ch.pixels.contains(&ch.center_pixel));
         }
@@ -522,7 +652,15 @@ mod tests {
     fn line_scene(n: usize) -> (Vec<f32>, Vec<f32>, Vec<bool>) {
         let ff: Vec<f32> = (0..n).flat_map(|i| [i as f32, 0.0, 0.0]).collect();
         let mask: Vec<bool> = (0..n).map(|i| i % 2 == 0).collect();
-        let dlt: Vec<f32> = (0..n).flat_map(|i| if i % 2 == 0 { [i as f32, 0.0, 0.0] } else { [0.0; 3] }).collect();
+        let dlt: Vec<f32> = (0..n)
+            .flat_map(|i| {
+                if i % 2 == 0 {
+                    [i as f32, 0.0, 0.0]
+                } else {
+                    [0.0; 3]
+                }
+            })
+            .collect();
         (ff, dlt, mask)
     }
 
@@ -530,8 +668,19 @@ mod tests {
     fn closed_box_shrink_and_coverage() {
         let (ff, dlt, mask) = line_scene(20);
         // R such that r = chunk_size * R = 2: box [c-2, c+2] closed -> 5 pixels around an interior centre.
-        let params = ChunkParams { chunk_size: 0.5, max_pixels: 5, min_dlt: 1, min_pixels: 1, max_chunks_after_converge: 100 };
-        let inputs = ChunkInputs { ff_points: &ff, dlt_points: &dlt, dlt_mask: &mask, roi: None };
+        let params = ChunkParams {
+            chunk_size: 0.5,
+            max_pixels: 5,
+            min_dlt: 1,
+            min_pixels: 1,
+            max_chunks_after_converge: 100,
+        };
+        let inputs = ChunkInputs {
+            ff_points: &ff,
+            dlt_points: &dlt,
+            dlt_mask: &mask,
+            roi: None,
+        };
         let mut s = ChunkSampler::new(inputs, 4.0, params.clone()).unwrap();
         // Uncovered DLT pixels: 0,2,...,18; draw #5 -> pixel 10.
         let c = s.next_chunk(&mut Replay(vec![5], 0)).unwrap().unwrap();
@@ -541,7 +690,10 @@ mod tests {
         assert_eq!(c.n_dlt, 3);
         assert_eq!(s.uncovered_count(), 7);
         // max_pixels 4: one shrink to 1.8 -> pixels 9..=11.
-        let params4 = ChunkParams { max_pixels: 4, ..params };
+        let params4 = ChunkParams {
+            max_pixels: 4,
+            ..params
+        };
         let mut s4 = ChunkSampler::new(inputs, 4.0, params4).unwrap();
         let c4 = s4.next_chunk(&mut Replay(vec![5], 0)).unwrap().unwrap();
         assert_eq!(c4.pixels, vec![9, 10, 11]);
@@ -553,19 +705,40 @@ mod tests {
     fn rejection_lowers_minimums_and_ten_failures_stop() {
         let (ff, dlt, mask) = line_scene(20);
         // r = 0.5: each chunk holds one pixel (one DLT point); min_dlt 100 can never be met.
-        let params = ChunkParams { chunk_size: 0.5, max_pixels: 100, min_dlt: 100, min_pixels: 1, max_chunks_after_converge: 100 };
-        let inputs = ChunkInputs { ff_points: &ff, dlt_points: &dlt, dlt_mask: &mask, roi: None };
+        let params = ChunkParams {
+            chunk_size: 0.5,
+            max_pixels: 100,
+            min_dlt: 100,
+            min_pixels: 1,
+            max_chunks_after_converge: 100,
+        };
+        let inputs = ChunkInputs {
+            ff_points: &ff,
+            dlt_points: &dlt,
+            dlt_mask: &mask,
+            roi: None,
+        };
         let mut s = ChunkSampler::new(inputs, 1.0, params).unwrap();
         let mut src = PcgDraws::new(1);
         // Attempt 1: n_dlt 1 < 100 -> m_dlt = max(0, 10) = 10; then 1 < 10 -> 10 again, ... 10 failures.
         assert!(s.next_chunk(&mut src).unwrap().is_none());
         assert_eq!(s.attempts().len(), MAX_CONSECUTIVE_FAILURES);
         assert_eq!(s.attempts()[0].min_dlt, 100);
-        assert!(s.attempts()[1..].iter().all(|a| a.min_dlt == 10 && !a.accepted));
+        assert!(
+            s.attempts()[1..]
+                .iter()
+                .all(|a| a.min_dlt == 10 && !a.accepted)
+        );
         assert_eq!(s.stop_reason(), Some(StopReason::Failures));
         assert_eq!(s.uncovered_count(), 10);
         // Pixel-count rule: min_pixels 50 with 1-pixel chunks: m_pix -> max(0, 5) = 5.
-        let params = ChunkParams { chunk_size: 0.5, max_pixels: 100, min_dlt: 1, min_pixels: 50, max_chunks_after_converge: 100 };
+        let params = ChunkParams {
+            chunk_size: 0.5,
+            max_pixels: 100,
+            min_dlt: 1,
+            min_pixels: 50,
+            max_chunks_after_converge: 100,
+        };
         let mut s = ChunkSampler::new(inputs, 1.0, params).unwrap();
         assert!(s.next_chunk(&mut src).unwrap().is_none());
         assert_eq!(s.attempts()[1].min_pixels, 5);
@@ -575,24 +748,57 @@ mod tests {
     #[test]
     fn full_coverage_roi_and_converge_rule() {
         let (ff, dlt, mask) = line_scene(20);
-        let params = ChunkParams { chunk_size: 0.5, max_pixels: 100, min_dlt: 1, min_pixels: 1, max_chunks_after_converge: 100 };
-        let inputs = ChunkInputs { ff_points: &ff, dlt_points: &dlt, dlt_mask: &mask, roi: None };
+        let params = ChunkParams {
+            chunk_size: 0.5,
+            max_pixels: 100,
+            min_dlt: 1,
+            min_pixels: 1,
+            max_chunks_after_converge: 100,
+        };
+        let inputs = ChunkInputs {
+            ff_points: &ff,
+            dlt_points: &dlt,
+            dlt_mask: &mask,
+            roi: None,
+        };
         let set = sample_chunks(inputs, 3.0, &params, &mut PcgDraws::new(7)).unwrap();
         assert_eq!(set.stop, StopReason::AllCovered);
         assert_eq!(set.uncovered, 0);
         for ch in &set.chunks {
-            assert!(ch.pixels.iter().all(|&p| (ff[3 * p as usize] - ch.center[0]).abs() <= ch.radius as f32));
+            assert!(
+                ch.pixels
+                    .iter()
+                    .all(|&p| (ff[3 * p as usize] - ch.center[0]).abs() <= ch.radius as f32)
+            );
         }
         // ROI excludes odd pixels' dense points: odd pixels never enter (no DLT point either).
         let roi: Vec<bool> = (0..20).map(|i| i % 2 == 0).collect();
-        let inputs_roi = ChunkInputs { roi: Some(&roi), ..inputs };
+        let inputs_roi = ChunkInputs {
+            roi: Some(&roi),
+            ..inputs
+        };
         let set = sample_chunks(inputs_roi, 3.0, &params, &mut PcgDraws::new(7)).unwrap();
-        assert!(set.chunks.iter().all(|c| c.pixels.iter().all(|p| p % 2 == 0)));
+        assert!(
+            set.chunks
+                .iter()
+                .all(|c| c.pixels.iter().all(|p| p % 2 == 0))
+        );
         // An uncovered DLT point enters even when its dense point is far away.
         let mut ff_far = ff.clone();
         ff_far[3 * 12] = 1000.0;
-        let inputs_far = ChunkInputs { ff_points: &ff_far, ..inputs };
-        let mut s = ChunkSampler::new(inputs_far, 4.0, ChunkParams { chunk_size: 0.5, ..params.clone() }).unwrap();
+        let inputs_far = ChunkInputs {
+            ff_points: &ff_far,
+            ..inputs
+        };
+        let mut s = ChunkSampler::new(
+            inputs_far,
+            4.0,
+            ChunkParams {
+                chunk_size: 0.5,
+                ..params.clone()
+            },
+        )
+        .unwrap();
         let c = s.next_chunk(&mut Replay(vec![5], 0)).unwrap().unwrap();
         assert_eq!(c.pixels, vec![8, 9, 10, 11, 12]); // 12 enters through its DLT point
         // Uncovered now: 0, 2, 4, 6, 14, 16, 18; #4 -> centre 14, box [12, 16]: the covered DLT
@@ -601,7 +807,10 @@ mod tests {
         assert_eq!(c.center, [14.0, 0.0, 0.0]);
         assert_eq!(c.pixels, vec![13, 14, 15, 16]);
         // max_chunks_after_converge = 0: the first chunk is accepted only if it adds DLT pixels (it always does).
-        let p0 = ChunkParams { max_chunks_after_converge: 0, ..params };
+        let p0 = ChunkParams {
+            max_chunks_after_converge: 0,
+            ..params
+        };
         let set = sample_chunks(inputs, 3.0, &p0, &mut PcgDraws::new(3)).unwrap();
         assert!(!set.chunks.is_empty());
     }
@@ -611,8 +820,19 @@ mod tests {
         let ff = vec![0.0f32; 3 * 50];
         let dlt = vec![0.0f32; 3 * 50];
         let mask = vec![true; 50];
-        let params = ChunkParams { chunk_size: 0.2, max_pixels: 10, min_dlt: 1, min_pixels: 1, max_chunks_after_converge: 100 };
-        let inputs = ChunkInputs { ff_points: &ff, dlt_points: &dlt, dlt_mask: &mask, roi: None };
+        let params = ChunkParams {
+            chunk_size: 0.2,
+            max_pixels: 10,
+            min_dlt: 1,
+            min_pixels: 1,
+            max_chunks_after_converge: 100,
+        };
+        let inputs = ChunkInputs {
+            ff_points: &ff,
+            dlt_points: &dlt,
+            dlt_mask: &mask,
+            roi: None,
+        };
         let set = sample_chunks(inputs, 1.0, &params, &mut PcgDraws::new(0)).unwrap();
         assert!(set.chunks.is_empty());
         assert_eq!(set.stop, StopReason::Failures);
@@ -634,11 +854,31 @@ mod tests {
     #[test]
     fn training_chunk() {
         let (ff, dlt, mask) = line_scene(20);
-        let params = ChunkParams { chunk_size: 0.5, max_pixels: 100, min_dlt: 2, min_pixels: 3, max_chunks_after_converge: 100 };
-        let inputs = ChunkInputs { ff_points: &ff, dlt_points: &dlt, dlt_mask: &mask, roi: None };
-        let c = sample_training_chunk(inputs, 4.0, &params, &mut PcgDraws::new(5)).unwrap().unwrap();
+        let params = ChunkParams {
+            chunk_size: 0.5,
+            max_pixels: 100,
+            min_dlt: 2,
+            min_pixels: 3,
+            max_chunks_after_converge: 100,
+        };
+        let inputs = ChunkInputs {
+            ff_points: &ff,
+            dlt_points: &dlt,
+            dlt_mask: &mask,
+            roi: None,
+        };
+        let c = sample_training_chunk(inputs, 4.0, &params, &mut PcgDraws::new(5))
+            .unwrap()
+            .unwrap();
         assert!(c.n_dlt >= 2 && c.pixels.len() >= 3);
-        let impossible = ChunkParams { min_dlt: 50, ..params };
-        assert!(sample_training_chunk(inputs, 4.0, &impossible, &mut PcgDraws::new(5)).unwrap().is_none());
+        let impossible = ChunkParams {
+            min_dlt: 50,
+            ..params
+        };
+        assert!(
+            sample_training_chunk(inputs, 4.0, &impossible, &mut PcgDraws::new(5))
+                .unwrap()
+                .is_none()
+        );
     }
 }

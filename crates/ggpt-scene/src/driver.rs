@@ -12,7 +12,7 @@
 //! feed-forward confidence and a warning.
 
 use ggpt_core::sim3::AlignMethod;
-use ggpt_core::{Cameras, Dims, Scene, SfmResult};
+use ggpt_core::{Cameras, Dims, Progress, Scene, SfmResult};
 use nalgebra::Matrix3x4;
 use rand::SeedableRng;
 
@@ -26,10 +26,10 @@ use crate::roi::RegionOfInterest;
 
 /// Default token budget of one network forward ([project]). Memory follows the tokens of the
 /// *deep* levels: small chunks are sparse in their unit cube and pool little, so a batch of many
-/// small chunks keeps most of its tokens down to enc3 / enc4 (released configuration,
-/// `bench_infer`: 11.1 GB for 800k such tokens of a 4-view scene, 6-10.5 GB for 400k), while one
-/// dense chunk pools well (2.8 GB for 400k tokens). Forward time is linear in the batch, so smaller
-/// batches cost no throughput; a chunk larger than the budget runs alone.
+/// small chunks keeps most of its tokens down to enc3 / enc4 (released configuration, the
+/// `infer` bench of `ggpt-infer`: 11.1 GB for 800k such tokens of a 4-view scene, 6-10.5 GB for
+/// 400k), while one dense chunk pools well (2.8 GB for 400k tokens). Forward time is linear in the
+/// batch, so smaller batches cost no throughput; a chunk larger than the budget runs alone.
 pub const DEFAULT_MAX_TOKENS_PER_FORWARD: usize = 400_000;
 /// Default seed of the RANSAC sampler (project-wide default seed).
 pub const DEFAULT_SEED: u64 = 42;
@@ -195,17 +195,16 @@ impl RefinedScene {
     }
 }
 
-/// Progress report: `done` of `total` chunks refined.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Progress {
-    /// Chunks refined so far.
-    pub done: usize,
-    /// Chunks to refine.
-    pub total: usize,
-}
+/// Name of the refinement stage in progress reports (one unit per chunk).
+pub const PROGRESS_STAGE: &str = "refine";
 
 /// [`refine_scene_with_progress`] without progress reports.
-pub fn refine_scene(scene: &Scene, sfm: &SfmResult, refiner: &mut dyn ChunkRefiner, opts: &RefineOptions) -> Result<RefinedScene, SceneError> {
+pub fn refine_scene(
+    scene: &Scene,
+    sfm: &SfmResult,
+    refiner: &mut dyn ChunkRefiner,
+    opts: &RefineOptions,
+) -> Result<RefinedScene, SceneError> {
     refine_scene_with_progress(scene, sfm, refiner, opts, &mut |_| {})
 }
 
@@ -218,7 +217,11 @@ fn check_cameras(what: &str, c: &Cameras, n: usize) -> Result<(), SceneError> {
         )));
     }
     if !c.is_finite() {
-        return Err(SceneError::NonFinite { what: format!("{what} cameras"), index: 0, value: f64::NAN });
+        return Err(SceneError::NonFinite {
+            what: format!("{what} cameras"),
+            index: 0,
+            value: f64::NAN,
+        });
     }
     Ok(())
 }
@@ -238,7 +241,10 @@ pub fn refine_scene_with_progress(
 ) -> Result<RefinedScene, SceneError> {
     let dims = scene.dims;
     let px = dims.pixels();
-    let ff = scene.ff.as_ref().ok_or_else(|| SceneError::Invalid("the scene has no feed-forward prediction".into()))?;
+    let ff = scene
+        .ff
+        .as_ref()
+        .ok_or_else(|| SceneError::Invalid("the scene has no feed-forward prediction".into()))?;
     // Sizes and view counts.
     check_len("ff.points", ff.points.len(), 3 * px)?;
     check_len("ff.conf", ff.conf.len(), px)?;
@@ -255,7 +261,9 @@ pub fn refine_scene_with_progress(
     check_finite("ff.conf", &ff.conf)?;
     check_finite("sfm.points", &sfm.points)?;
     check_finite("images", &scene.images)?;
-    let chunk_seed = opts.chunk_seed.unwrap_or_else(|| crate::chunker::scene_seed(&scene.name));
+    let chunk_seed = opts
+        .chunk_seed
+        .unwrap_or_else(|| crate::chunker::scene_seed(&scene.name));
     let mut warnings = Vec::new();
     let mut warn = |w: String| {
         tracing::warn!("{w}");
@@ -293,7 +301,13 @@ pub fn refine_scene_with_progress(
 
     // §3 pre-alignment (on the full M_s).
     let mut rng = rand_pcg::Pcg64::seed_from_u64(opts.seed);
-    let pre = prealign_ff(&ff.points, &sfm.points, &sfm.mask, opts.align_max_error, &mut rng)?;
+    let pre = prealign_ff(
+        &ff.points,
+        &sfm.points,
+        &sfm.mask,
+        opts.align_max_error,
+        &mut rng,
+    )?;
     if pre.is_identity_fallback() {
         warn("Sim(3) pre-alignment failed completely: using the identity".into());
     }
@@ -320,9 +334,18 @@ pub fn refine_scene_with_progress(
     // §4 radius, §5 chunks.
     let radius = scene_radius(&aligned, dims, opts.radius_rule, roi)?;
     if radius.rule != opts.radius_rule {
-        tracing::info!("scene radius: {:?} rule used instead of {:?} (mask or N = 1)", radius.rule, opts.radius_rule);
+        tracing::info!(
+            "scene radius: {:?} rule used instead of {:?} (mask or N = 1)",
+            radius.rule,
+            opts.radius_rule
+        );
     }
-    let inputs = ChunkInputs { ff_points: &aligned, dlt_points: &sfm.points, dlt_mask: &dlt_mask, roi };
+    let inputs = ChunkInputs {
+        ff_points: &aligned,
+        dlt_points: &sfm.points,
+        dlt_mask: &dlt_mask,
+        roi,
+    };
     let mut draws = PcgDraws::new(chunk_seed);
     let set = sample_chunks(inputs, radius.radius, &opts.chunking, &mut draws)?;
     tracing::info!(
@@ -335,7 +358,14 @@ pub fn refine_scene_with_progress(
     );
 
     // §6-§8: records, forwards by token budget, un-normalise, fuse.
-    let src = RecordSources { ff_points: &aligned, ff_conf: &ff.conf, dlt_points: &sfm.points, dlt_mask: &dlt_mask, images: &scene.images, gt: None };
+    let src = RecordSources {
+        ff_points: &aligned,
+        ff_conf: &ff.conf,
+        dlt_points: &sfm.points,
+        dlt_mask: &dlt_mask,
+        images: &scene.images,
+        gt: None,
+    };
     let mut acc = FusionAccumulator::new(px, opts.fusion);
     let mut summaries = Vec::with_capacity(set.chunks.len());
     let (mut forwards, mut total_tokens) = (0usize, 0usize);
@@ -365,7 +395,11 @@ pub fn refine_scene_with_progress(
         }
         let out = refiner.refine(&batch)?;
         if out.len() != batch.len() {
-            return Err(SceneError::Refiner(format!("{} results for a batch of {} chunks", out.len(), batch.len())));
+            return Err(SceneError::Refiner(format!(
+                "{} results for a batch of {} chunks",
+                out.len(),
+                batch.len()
+            )));
         }
         for (rec, res) in batch.iter().zip(&out) {
             let k = rec.len();
@@ -377,13 +411,24 @@ pub fn refine_scene_with_progress(
                     res.conf.len()
                 )));
             }
-            let world: Vec<[f32; 3]> = res.points.iter().map(|&x| unnormalise(x, rec.center, rec.radius)).collect();
-            acc.add_chunk(&rec.pixels, &world, &res.conf).map_err(|e| SceneError::Refiner(format!("chunk {}: {e}", rec.index)))?;
-            summaries.push(ChunkSummary { index: rec.index, center: rec.center, radius: rec.radius, num_pixels: k, num_dlt: rec.num_tokens() - k });
+            let world: Vec<[f32; 3]> = res
+                .points
+                .iter()
+                .map(|&x| unnormalise(x, rec.center, rec.radius))
+                .collect();
+            acc.add_chunk(&rec.pixels, &world, &res.conf)
+                .map_err(|e| SceneError::Refiner(format!("chunk {}: {e}", rec.index)))?;
+            summaries.push(ChunkSummary {
+                index: rec.index,
+                center: rec.center,
+                radius: rec.radius,
+                num_pixels: k,
+                num_dlt: rec.num_tokens() - k,
+            });
         }
         forwards += 1;
         total_tokens += tokens;
-        progress(Progress { done: next, total });
+        progress(Progress::new(PROGRESS_STAGE, next as u64, total as u64));
     }
     let fused = acc.finish(&aligned, &ff.conf)?;
     if fused.no_chunk_fallback {
@@ -421,8 +466,12 @@ pub(crate) mod tests {
 
     fn cams(ext: &[f32], intr: &[f32], n: usize) -> Cameras {
         Cameras {
-            cam_from_world: (0..n).map(|i| Matrix3x4::from_row_slice(&ext[12 * i..12 * i + 12]).map(f64::from)).collect(),
-            intrinsics: (0..n).map(|i| Matrix3::from_row_slice(&intr[9 * i..9 * i + 9]).map(f64::from)).collect(),
+            cam_from_world: (0..n)
+                .map(|i| Matrix3x4::from_row_slice(&ext[12 * i..12 * i + 12]).map(f64::from))
+                .collect(),
+            intrinsics: (0..n)
+                .map(|i| Matrix3::from_row_slice(&intr[9 * i..9 * i + 9]).map(f64::from))
+                .collect(),
         }
     }
 
@@ -431,12 +480,32 @@ pub(crate) mod tests {
         let inputs = Fixture::sfm_inputs();
         let steps = Fixture::sfm_steps();
         let dims = Dims { n: 4, h: 42, w: 56 };
-        let ff = FeedForward { points: inputs.f32("ff/points"), conf: inputs.f32("ff/points_conf"), cameras: cams(&inputs.f32("ff/extrinsics"), &inputs.f32("ff/intrinsics"), 4) };
-        let scene = Scene { name: "synth_room_s0".into(), dims, images: inputs.f32("ff/images_ff"), gt: None, ff: Some(ff), sfm: None, matches: Vec::new() };
+        let ff = FeedForward {
+            points: inputs.f32("ff/points"),
+            conf: inputs.f32("ff/points_conf"),
+            cameras: cams(
+                &inputs.f32("ff/extrinsics"),
+                &inputs.f32("ff/intrinsics"),
+                4,
+            ),
+        };
+        let scene = Scene {
+            name: "synth_room_s0".into(),
+            dims,
+            images: inputs.f32("ff/images_ff"),
+            gt: None,
+            ff: Some(ff),
+            sfm: None,
+            matches: Vec::new(),
+        };
         let sfm = SfmResult {
             points: steps.f32("scatter/points"),
             mask: steps.bool("scatter/point_masks"),
-            cameras: cams(&steps.f32("ba/out_extrinsics"), &steps.f32("ba/out_intrinsics"), 4),
+            cameras: cams(
+                &steps.f32("ba/out_extrinsics"),
+                &steps.f32("ba/out_intrinsics"),
+                4,
+            ),
             camera_success: true,
             points_success: true,
         };
@@ -444,7 +513,10 @@ pub(crate) mod tests {
     }
 
     pub(crate) fn fixture_opts() -> RefineOptions {
-        RefineOptions { chunking: crate::chunker::tests_support::fixture_params(), ..RefineOptions::default() }
+        RefineOptions {
+            chunking: crate::chunker::tests_support::fixture_params(),
+            ..RefineOptions::default()
+        }
     }
 
     /// Identity network plus a known per-chunk offset (chunk coordinates) on x.
@@ -461,7 +533,10 @@ pub(crate) mod tests {
                 .map(|c| {
                     self.seen.push((c.index, c.center, c.radius));
                     let d = self.offset_per_chunk * (c.index as f32 + 1.0);
-                    RefinedChunk { points: c.ff_pts.iter().map(|x| [x[0] + d, x[1], x[2]]).collect(), conf: vec![2.0; c.len()] }
+                    RefinedChunk {
+                        points: c.ff_pts.iter().map(|x| [x[0] + d, x[1], x[2]]).collect(),
+                        conf: vec![2.0; c.len()],
+                    }
                 })
                 .collect())
         }
@@ -470,7 +545,11 @@ pub(crate) mod tests {
     #[test]
     fn identity_refiner_fuses_back_to_aligned_points() {
         let (scene, sfm) = fixture_scene();
-        let mut m = MockRefiner { offset_per_chunk: 0.0, calls: vec![], seen: vec![] };
+        let mut m = MockRefiner {
+            offset_per_chunk: 0.0,
+            calls: vec![],
+            seen: vec![],
+        };
         let out = refine_scene(&scene, &sfm, &mut m, &fixture_opts()).unwrap();
         assert!(!out.chunks.is_empty());
         assert_eq!(out.chunk_seed, 843347836);
@@ -482,7 +561,10 @@ pub(crate) mod tests {
                 covered += 1;
                 assert_eq!(out.conf[p], 2.0);
                 for i in 0..3 {
-                    assert!((a[i] - x[i]).abs() <= 1e-5 * (1.0 + a[i].abs()), "pixel {p}: {x:?} vs {a:?}");
+                    assert!(
+                        (a[i] - x[i]).abs() <= 1e-5 * (1.0 + a[i].abs()),
+                        "pixel {p}: {x:?} vs {a:?}"
+                    );
                 }
             } else {
                 assert_eq!(out.conf[p], 0.0);
@@ -491,14 +573,25 @@ pub(crate) mod tests {
         }
         assert!(covered > 0 && covered < scene.dims.pixels());
         // Every DLT pixel the sampler covered is covered.
-        assert_eq!(out.dlt_pixels - out.uncovered_dlt, sfm.mask.iter().zip(&out.covered).filter(|(m, c)| **m && **c).count());
+        assert_eq!(
+            out.dlt_pixels - out.uncovered_dlt,
+            sfm.mask
+                .iter()
+                .zip(&out.covered)
+                .filter(|(m, c)| **m && **c)
+                .count()
+        );
     }
 
     #[test]
     fn offsets_are_unnormalised_and_averaged() {
         let (scene, sfm) = fixture_scene();
         let off = 0.01f32;
-        let mut m = MockRefiner { offset_per_chunk: off, calls: vec![], seen: vec![] };
+        let mut m = MockRefiner {
+            offset_per_chunk: off,
+            calls: vec![],
+            seen: vec![],
+        };
         let out = refine_scene(&scene, &sfm, &mut m, &fixture_opts()).unwrap();
         // Expected x shift of pixel p = mean over covering chunks k of off (k+1) r_k.
         let mut shift = vec![0.0f64; scene.dims.pixels()];
@@ -507,8 +600,19 @@ pub(crate) mod tests {
         // Re-run the sampler independently with the same seed to know every chunk's pixels.
         let mut sampler_chunks = Vec::new();
         {
-            let inputs = ChunkInputs { ff_points: &aligned, dlt_points: &sfm.points, dlt_mask: &sfm.mask, roi: None };
-            let set = sample_chunks(inputs, out.radius.unwrap().radius, &fixture_opts().chunking, &mut PcgDraws::new(out.chunk_seed)).unwrap();
+            let inputs = ChunkInputs {
+                ff_points: &aligned,
+                dlt_points: &sfm.points,
+                dlt_mask: &sfm.mask,
+                roi: None,
+            };
+            let set = sample_chunks(
+                inputs,
+                out.radius.unwrap().radius,
+                &fixture_opts().chunking,
+                &mut PcgDraws::new(out.chunk_seed),
+            )
+            .unwrap();
             sampler_chunks.extend(set.chunks);
         }
         assert_eq!(sampler_chunks.len(), out.chunks.len());
@@ -522,7 +626,10 @@ pub(crate) mod tests {
         for p in 0..scene.dims.pixels() {
             if cnt[p] > 0 {
                 let want = f64::from(aligned[3 * p]) + shift[p] / f64::from(cnt[p]);
-                assert!((f64::from(out.points[3 * p]) - want).abs() < 1e-5, "pixel {p}");
+                assert!(
+                    (f64::from(out.points[3 * p]) - want).abs() < 1e-5,
+                    "pixel {p}"
+                );
                 assert!((out.points[3 * p + 1] - aligned[3 * p + 1]).abs() < 1e-5);
             }
         }
@@ -531,15 +638,25 @@ pub(crate) mod tests {
     #[test]
     fn batching_does_not_change_results() {
         let (scene, sfm) = fixture_scene();
-        let mut one = MockRefiner { offset_per_chunk: 0.02, calls: vec![], seen: vec![] };
+        let mut one = MockRefiner {
+            offset_per_chunk: 0.02,
+            calls: vec![],
+            seen: vec![],
+        };
         let mut opts = fixture_opts();
         opts.max_tokens_per_forward = 1;
         let a = refine_scene(&scene, &sfm, &mut one, &opts).unwrap();
         assert!(one.calls.iter().all(|&c| c == 1));
-        let mut many = MockRefiner { offset_per_chunk: 0.02, calls: vec![], seen: vec![] };
+        let mut many = MockRefiner {
+            offset_per_chunk: 0.02,
+            calls: vec![],
+            seen: vec![],
+        };
         opts.max_tokens_per_forward = 5000;
         let mut reports = Vec::new();
-        let b = refine_scene_with_progress(&scene, &sfm, &mut many, &opts, &mut |p| reports.push(p)).unwrap();
+        let b =
+            refine_scene_with_progress(&scene, &sfm, &mut many, &opts, &mut |p| reports.push(p))
+                .unwrap();
         assert!(many.calls.len() < one.calls.len());
         assert!(many.calls.iter().any(|&c| c > 1));
         assert_eq!(a.points, b.points);
@@ -551,7 +668,8 @@ pub(crate) mod tests {
         assert_eq!(j["forwards"], many.calls.len());
         assert_eq!(j["chunk_seed"], 843347836u64);
         assert_eq!(j["alignment"]["method"]["method"], "robust");
-        assert_eq!(reports.last().map(|p| p.done), Some(b.chunks.len()));
+        assert_eq!(reports.last().map(|p| p.done), Some(b.chunks.len() as u64));
+        assert!(reports.iter().all(|p| p.stage == PROGRESS_STAGE));
         assert!(reports.windows(2).all(|w| w[0].done < w[1].done));
     }
 
@@ -559,7 +677,11 @@ pub(crate) mod tests {
     fn errors_and_edge_cases() {
         let (scene, sfm) = fixture_scene();
         let opts = fixture_opts();
-        let mut m = MockRefiner { offset_per_chunk: 0.0, calls: vec![], seen: vec![] };
+        let mut m = MockRefiner {
+            offset_per_chunk: 0.0,
+            calls: vec![],
+            seen: vec![],
+        };
         // NaN in X_d names the first bad index.
         let mut bad = scene.clone();
         if let Some(ff) = bad.ff.as_mut() {
@@ -567,13 +689,17 @@ pub(crate) mod tests {
             ff.points[200] = f32::INFINITY;
         }
         match refine_scene(&bad, &sfm, &mut m, &opts) {
-            Err(SceneError::NonFinite { what, index, .. }) => assert_eq!((what.as_str(), index), ("ff.points", 100)),
+            Err(SceneError::NonFinite { what, index, .. }) => {
+                assert_eq!((what.as_str(), index), ("ff.points", 100))
+            }
             other => panic!("expected NonFinite, got {other:?}"),
         }
         // Mismatched view counts.
         let mut sfm3 = sfm.clone();
         sfm3.cameras.cam_from_world.pop();
-        assert!(matches!(refine_scene(&scene, &sfm3, &mut m, &opts), Err(SceneError::Invalid(s)) if s.contains("view counts")));
+        assert!(
+            matches!(refine_scene(&scene, &sfm3, &mut m, &opts), Err(SceneError::Invalid(s)) if s.contains("view counts"))
+        );
         // Wrong array size.
         let mut short = sfm.clone();
         short.mask.pop();
@@ -582,14 +708,26 @@ pub(crate) mod tests {
         let mut empty = sfm.clone();
         empty.mask.fill(false);
         empty.points_success = false;
-        assert!(matches!(refine_scene(&scene, &empty, &mut m, &opts), Err(SceneError::NoDltPoint)));
-        let allow = RefineOptions { allow_unrefined: true, ..opts.clone() };
+        assert!(matches!(
+            refine_scene(&scene, &empty, &mut m, &opts),
+            Err(SceneError::NoDltPoint)
+        ));
+        let allow = RefineOptions {
+            allow_unrefined: true,
+            ..opts.clone()
+        };
         let u = refine_scene(&scene, &empty, &mut m, &allow).unwrap();
         assert!(u.unrefined);
         assert_eq!(u.points, scene.ff.as_ref().unwrap().points);
         assert!(u.conf.iter().all(|&c| c == 0.0));
         // No accepted chunk (impossible minimums): aligned ff with ff confidence.
-        let strict = RefineOptions { chunking: ChunkParams { min_dlt: 1_000_000, ..opts.chunking.clone() }, ..opts.clone() };
+        let strict = RefineOptions {
+            chunking: ChunkParams {
+                min_dlt: 1_000_000,
+                ..opts.chunking.clone()
+            },
+            ..opts.clone()
+        };
         let n = refine_scene(&scene, &sfm, &mut m, &strict).unwrap();
         assert!(n.no_chunk_fallback && n.chunks.is_empty());
         assert_eq!(n.points, n.aligned_ff);
@@ -599,10 +737,18 @@ pub(crate) mod tests {
         struct Broken;
         impl ChunkRefiner for Broken {
             fn refine(&mut self, chunks: &[ChunkRecord]) -> Result<Vec<RefinedChunk>, SceneError> {
-                Ok(chunks.iter().map(|_| RefinedChunk { points: vec![], conf: vec![] }).collect())
+                Ok(chunks
+                    .iter()
+                    .map(|_| RefinedChunk {
+                        points: vec![],
+                        conf: vec![],
+                    })
+                    .collect())
             }
         }
-        assert!(matches!(refine_scene(&scene, &sfm, &mut Broken, &opts), Err(SceneError::Refiner(s)) if s.contains("chunk 0")));
+        assert!(
+            matches!(refine_scene(&scene, &sfm, &mut Broken, &opts), Err(SceneError::Refiner(s)) if s.contains("chunk 0"))
+        );
     }
 
     #[test]
@@ -611,8 +757,15 @@ pub(crate) mod tests {
         // Keep only views 0 and 1.
         let hw = scene.dims.hw();
         let roi: Vec<bool> = (0..scene.dims.pixels()).map(|p| p < 2 * hw).collect();
-        let opts = RefineOptions { roi: Some(RegionOfInterest::Mask(roi.clone())), ..fixture_opts() };
-        let mut m = MockRefiner { offset_per_chunk: 0.0, calls: vec![], seen: vec![] };
+        let opts = RefineOptions {
+            roi: Some(RegionOfInterest::Mask(roi.clone())),
+            ..fixture_opts()
+        };
+        let mut m = MockRefiner {
+            offset_per_chunk: 0.0,
+            calls: vec![],
+            seen: vec![],
+        };
         let out = refine_scene(&scene, &sfm, &mut m, &opts).unwrap();
         assert_eq!(out.radius.unwrap().rule, RadiusRule::Pooled);
         assert!(out.covered.iter().zip(&roi).all(|(c, r)| !*c || *r));
@@ -620,14 +773,21 @@ pub(crate) mod tests {
         // A box around part of the scene: covered dense pixels lie in the box or entered
         // through an in-box DLT point.
         let (lo, hi) = ([-0.2f32, -0.5, 0.0], [0.3f32, 0.5, 3.0]);
-        let opts = RefineOptions { roi: Some(RegionOfInterest::Box { min: lo, max: hi }), ..fixture_opts() };
+        let opts = RefineOptions {
+            roi: Some(RegionOfInterest::Box { min: lo, max: hi }),
+            ..fixture_opts()
+        };
         let out = refine_scene(&scene, &sfm, &mut m, &opts).unwrap();
         let inb = |x: &[f32]| (0..3).all(|a| lo[a] <= x[a] && x[a] <= hi[a]);
         let mut n = 0;
         for p in 0..scene.dims.pixels() {
             if out.covered[p] {
                 n += 1;
-                assert!(inb(&out.aligned_ff[3 * p..3 * p + 3]) || (sfm.mask[p] && inb(&sfm.points[3 * p..3 * p + 3])), "pixel {p}");
+                assert!(
+                    inb(&out.aligned_ff[3 * p..3 * p + 3])
+                        || (sfm.mask[p] && inb(&sfm.points[3 * p..3 * p + 3])),
+                    "pixel {p}"
+                );
             }
         }
         assert!(n > 0 && n < scene.dims.pixels());

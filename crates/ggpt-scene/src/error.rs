@@ -10,9 +10,18 @@ pub enum SceneError {
     /// A NaN / inf value in an input array (`pipeline.md` §13). `index` is the flat index in the
     /// array named by `what` (`[N, h, w, 3]` arrays: `3 * p + axis`).
     #[error("{what}: non-finite value {value} at flat index {index}")]
-    NonFinite { what: String, index: usize, value: f64 },
+    NonFinite {
+        /// The array.
+        what: String,
+        /// Flat index of the value.
+        index: usize,
+        /// The value.
+        value: f64,
+    },
     /// The SfM stage produced no DLT point (`points_success` false); refinement is impossible.
-    #[error("SfM produced no DLT point: nothing to refine (use the allow-unrefined option to export the feed-forward points)")]
+    #[error(
+        "SfM produced no DLT point: nothing to refine (use the allow-unrefined option to export the feed-forward points)"
+    )]
     NoDltPoint,
     /// The chunk refiner (the network) failed or returned malformed output.
     #[error("chunk refiner: {0}")]
@@ -42,6 +51,8 @@ pub fn check_len(what: &str, len: usize, want: usize) -> Result<(), SceneError> 
     if len == want {
         Ok(())
     } else {
-        Err(SceneError::Invalid(format!("{what}: {len} values, expected {want}")))
+        Err(SceneError::Invalid(format!(
+            "{what}: {len} values, expected {want}"
+        )))
     }
 }

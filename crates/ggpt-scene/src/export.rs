@@ -11,14 +11,17 @@
 //! of the same pixels, feed-forward frame), `sfm_points.ply` (DLT points, SfM frame, ≤ 10^6,
 //! no confidence filter); `points.npy`, `confidence.npy`, `covered.npy`, `depth.npy` (`z` of the
 //! refined points in the SfM cameras, scene units), `scene.npz`; `sparse/0/` (COLMAP);
-//! `config.json`, `meta.json`.
+//! `config.json`, `meta.json`; for a full run also `refined.safetensors`, `evaluation.json` and
+//! `error_maps/view_*.png`. [`RunOutput`] is the one writer of the output folder: every file of a
+//! run goes through it, and it writes `meta.json` once, at the end.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use ggpt_core::io::atomic::write_json_atomic;
 use ggpt_core::io::colmap::{ColmapModel, ColmapPoint3D, write_colmap};
 use ggpt_core::io::npy::{NpyArray, NpyData, write_npy, write_npz};
 use ggpt_core::io::ply::{PlyCloud, write_ply};
+use ggpt_core::io::st::StWriter;
 use ggpt_core::{Cameras, Scene, SfmResult};
 use rand::SeedableRng;
 
@@ -45,7 +48,9 @@ pub fn torch_quantile(values: &[f32], q: f64) -> Result<f32, SceneError> {
         return Err(SceneError::Invalid("quantile of an empty array".into()));
     }
     if !(0.0..=1.0).contains(&q) {
-        return Err(SceneError::Invalid(format!("quantile q = {q} outside [0, 1]")));
+        return Err(SceneError::Invalid(format!(
+            "quantile q = {q} outside [0, 1]"
+        )));
     }
     crate::error::check_finite("quantile input", values)?;
     let n = values.len();
@@ -55,8 +60,16 @@ pub fn torch_quantile(values: &[f32], q: f64) -> Result<f32, SceneError> {
     let w = rank - lo as f32;
     let mut v = values.to_vec();
     let (_, &mut a, upper) = v.select_nth_unstable_by(lo, f32::total_cmp);
-    let b = if hi == lo { a } else { upper.iter().copied().min_by(f32::total_cmp).unwrap_or(a) };
-    Ok(if w < 0.5 { a + w * (b - a) } else { b - (b - a) * (1.0 - w) })
+    let b = if hi == lo {
+        a
+    } else {
+        upper.iter().copied().min_by(f32::total_cmp).unwrap_or(a)
+    };
+    Ok(if w < 0.5 {
+        a + w * (b - a)
+    } else {
+        b - (b - a) * (1.0 - w)
+    })
 }
 
 /// The PLY confidence threshold `τ` (`pipeline.md` §9.1): [`torch_quantile`] of `conf` (all
@@ -87,13 +100,25 @@ pub fn subsample(indices: &[u32], max: usize, seed: u64) -> Vec<u32> {
     let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
     let mut pick = rand::seq::index::sample(&mut rng, indices.len(), max).into_vec();
     pick.sort_unstable();
-    pick.into_iter().filter_map(|i| indices.get(i).copied()).collect()
+    pick.into_iter()
+        .filter_map(|i| indices.get(i).copied())
+        .collect()
 }
 
 /// Pixels kept by the PLY filter: `conf >= τ`, then [`subsample`] to `max_points`.
-pub fn select_points(conf: &[f32], q: f64, max_points: usize, seed: u64) -> Result<(f32, Vec<u32>), SceneError> {
+pub fn select_points(
+    conf: &[f32],
+    q: f64,
+    max_points: usize,
+    seed: u64,
+) -> Result<(f32, Vec<u32>), SceneError> {
     let tau = confidence_threshold(conf, q)?;
-    let keep: Vec<u32> = conf.iter().enumerate().filter(|(_, c)| **c >= tau).map(|(p, _)| p as u32).collect();
+    let keep: Vec<u32> = conf
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| **c >= tau)
+        .map(|(p, _)| p as u32)
+        .collect();
     Ok((tau, subsample(&keep, max_points, seed)))
 }
 
@@ -118,7 +143,14 @@ pub struct ColmapExportOptions {
 
 impl Default for ColmapExportOptions {
     fn default() -> Self {
-        ColmapExportOptions { text: false, points: true, max_points: DEFAULT_COLMAP_MAX_POINTS, resolution: None, shared_camera: true, simple_pinhole: false }
+        ColmapExportOptions {
+            text: false,
+            points: true,
+            max_points: DEFAULT_COLMAP_MAX_POINTS,
+            resolution: None,
+            shared_camera: true,
+            simple_pinhole: false,
+        }
     }
 }
 
@@ -182,20 +214,30 @@ fn p3(a: &[f32], p: usize) -> [f32; 3] {
 }
 
 fn colors(images: &[f32], pixels: &[u32]) -> Vec<[u8; 3]> {
-    pixels.iter().map(|&p| p3(images, p as usize).map(color_u8)).collect()
+    pixels
+        .iter()
+        .map(|&p| p3(images, p as usize).map(color_u8))
+        .collect()
 }
 
 /// Depth `z` of every refined point in its own view's camera (`cam_from_world_sfm`), `[P]`.
 pub fn depth_map(points: &[f32], cameras: &Cameras, hw: usize) -> Result<Vec<f32>, SceneError> {
     if hw == 0 || points.len() != 3 * hw * cameras.len() {
-        return Err(SceneError::Invalid(format!("depth: {} point values for {} cameras of {hw} pixels", points.len(), cameras.len())));
+        return Err(SceneError::Invalid(format!(
+            "depth: {} point values for {} cameras of {hw} pixels",
+            points.len(),
+            cameras.len()
+        )));
     }
     Ok(points
         .chunks_exact(3)
         .enumerate()
         .map(|(p, x)| {
             let m = &cameras.cam_from_world[p / hw];
-            (m[(2, 0)] * f64::from(x[0]) + m[(2, 1)] * f64::from(x[1]) + m[(2, 2)] * f64::from(x[2]) + m[(2, 3)]) as f32
+            (m[(2, 0)] * f64::from(x[0])
+                + m[(2, 1)] * f64::from(x[1])
+                + m[(2, 2)] * f64::from(x[2])
+                + m[(2, 3)]) as f32
         })
         .collect())
 }
@@ -215,7 +257,14 @@ pub const COLMAP_UNDEFINED_ERROR: f64 = -1.0;
 /// track and no reprojection error to store ([project] deviation from the spec's one-element
 /// pixel tracks with error 0, whose stored error was not the reprojection error: pycolmap's
 /// reprojection check rejected it).
-pub fn colmap_model(refined: &RefinedScene, images: &[f32], cameras: &Cameras, names: &[String], points: &[u32], opts: &ColmapExportOptions) -> Result<ColmapModel, SceneError> {
+pub fn colmap_model(
+    refined: &RefinedScene,
+    images: &[f32],
+    cameras: &Cameras,
+    names: &[String],
+    points: &[u32],
+    opts: &ColmapExportOptions,
+) -> Result<ColmapModel, SceneError> {
     let d = refined.dims;
     let (hh, ww) = opts.resolution.unwrap_or((d.h, d.w));
     let (sx, sy) = (ww as f64 / d.w as f64, hh as f64 / d.h as f64);
@@ -226,24 +275,41 @@ pub fn colmap_model(refined: &RefinedScene, images: &[f32], cameras: &Cameras, n
         k[(0, 2)] = (ww as f64 - 1.0) / 2.0;
         k[(1, 2)] = (hh as f64 - 1.0) / 2.0;
     }
-    let mut model = ColmapModel::from_cameras(&scaled, hh, ww, names, opts.simple_pinhole, opts.shared_camera)?;
+    let mut model = ColmapModel::from_cameras(
+        &scaled,
+        hh,
+        ww,
+        names,
+        opts.simple_pinhole,
+        opts.shared_camera,
+    )?;
     let px = d.pixels();
     for (i, &p) in points.iter().enumerate() {
         let p = p as usize;
         if p >= px {
-            return Err(SceneError::Invalid(format!("colmap: pixel {p} beyond {} views", d.n)));
+            return Err(SceneError::Invalid(format!(
+                "colmap: pixel {p} beyond {} views",
+                d.n
+            )));
         }
         let id = i as u64 + 1;
         let xyz = p3(&refined.points, p).map(f64::from);
-        model.points3d.push(ColmapPoint3D { id, xyz, rgb: p3(images, p).map(color_u8), error: COLMAP_UNDEFINED_ERROR, track: Vec::new() });
+        model.points3d.push(ColmapPoint3D {
+            id,
+            xyz,
+            rgb: p3(images, p).map(color_u8),
+            error: COLMAP_UNDEFINED_ERROR,
+            track: Vec::new(),
+        });
     }
     Ok(model)
 }
 
-/// Writes every export file of §9 into `dir` (created if needed). `scene` provides the images
-/// and the unaligned feed-forward points, `sfm` the cameras and DLT points, `refined` the output
-/// of [`crate::driver::refine_scene`]. `config` / `meta` are written as `config.json` /
-/// `meta.json` (with this export's summary added under `"export"` in `meta`).
+/// Writes every export file of §9 into `dir` (created if needed) and `config` / `meta` as
+/// `config.json` / `meta.json` (with this export's summary added under `"export"` in `meta`):
+/// a [`RunOutput`] for callers that write nothing else. `scene` provides the images and the
+/// unaligned feed-forward points, `sfm` the cameras and DLT points, `refined` the output of
+/// [`crate::driver::refine_scene`].
 pub fn export_scene(
     dir: &Path,
     scene: &Scene,
@@ -253,69 +319,307 @@ pub fn export_scene(
     config: &serde_json::Value,
     meta: &serde_json::Value,
 ) -> Result<ExportSummary, SceneError> {
-    let d = refined.dims;
-    let px = d.pixels();
-    check_len("export: refined points", refined.points.len(), 3 * px)?;
-    check_len("export: refined confidence", refined.conf.len(), px)?;
-    check_len("export: images", scene.images.len(), 3 * px)?;
-    check_len("export: sfm points", sfm.points.len(), 3 * px)?;
-    check_len("export: sfm mask", sfm.mask.len(), px)?;
-    let ff = scene.ff.as_ref().ok_or_else(|| SceneError::Invalid("export: the scene has no feed-forward prediction".into()))?;
-    check_len("export: ff points", ff.points.len(), 3 * px)?;
-    let mut files = Vec::new();
-    let (tau, keep) = select_points(&refined.conf, opts.conf_quantile, opts.max_points, opts.seed)?;
-    let mut sfm_count = 0;
-    if opts.ply {
-        let cols = colors(&scene.images, &keep);
-        let conf_of = |c: &[f32]| opts.ply_confidence.then(|| keep.iter().map(|&p| c.get(p as usize).copied().unwrap_or(0.0)).collect());
-        let refined_cloud = PlyCloud { points: keep.iter().map(|&p| p3(&refined.points, p as usize)).collect(), colors: cols.clone(), confidence: conf_of(&refined.conf) };
-        write_ply(&dir.join("ggpt_points.ply"), &refined_cloud)?;
-        let ff_cloud = PlyCloud { points: keep.iter().map(|&p| p3(&ff.points, p as usize)).collect(), colors: cols, confidence: conf_of(&ff.conf) };
-        write_ply(&dir.join("ff_points.ply"), &ff_cloud)?;
-        let dlt: Vec<u32> = sfm.mask.iter().enumerate().filter(|(_, m)| **m).map(|(p, _)| p as u32).collect();
-        let dlt = subsample(&dlt, opts.max_points, opts.seed);
-        sfm_count = dlt.len();
-        let sfm_cloud = PlyCloud { points: dlt.iter().map(|&p| p3(&sfm.points, p as usize)).collect(), colors: colors(&scene.images, &dlt), confidence: None };
-        write_ply(&dir.join("sfm_points.ply"), &sfm_cloud)?;
-        files.extend(["ggpt_points.ply", "ff_points.ply", "sfm_points.ply"].map(String::from));
-    }
-    if opts.arrays {
-        let (n, h, w) = (d.n, d.h, d.w);
-        let points = arr(vec![n, h, w, 3], NpyData::F32(refined.points.clone()))?;
-        let conf = arr(vec![n, h, w], NpyData::F32(refined.conf.clone()))?;
-        let covered = arr(vec![n, h, w], NpyData::Bool(refined.covered.clone()))?;
-        let depth = arr(vec![n, h, w], NpyData::F32(depth_map(&refined.points, &sfm.cameras, d.hw())?))?;
-        let cams = arr(vec![n, 3, 4], NpyData::F64(sfm.cameras.cam_from_world.iter().flat_map(|m| (0..12).map(move |i| m[(i / 4, i % 4)])).collect()))?;
-        let ks = arr(vec![n, 3, 3], NpyData::F64(sfm.cameras.intrinsics.iter().flat_map(|m| (0..9).map(move |i| m[(i / 3, i % 3)])).collect()))?;
-        let imgs = arr(vec![n, h, w, 3], NpyData::U8(scene.images.iter().map(|&v| color_u8(v)).collect()))?;
-        write_npy(&dir.join("points.npy"), &points)?;
-        write_npy(&dir.join("confidence.npy"), &conf)?;
-        write_npy(&dir.join("covered.npy"), &covered)?;
-        write_npy(&dir.join("depth.npy"), &depth)?;
-        let members = [("points", &points), ("confidence", &conf), ("covered", &covered), ("depth", &depth), ("cam_from_world", &cams), ("K", &ks), ("images_ff", &imgs)];
-        write_npz(&dir.join("scene.npz"), &members, false)?;
-        files.extend(["points.npy", "confidence.npy", "covered.npy", "depth.npy", "scene.npz"].map(String::from));
-    }
-    let mut colmap_count = 0;
-    if let Some(c) = &opts.colmap {
-        let names: Vec<String> = match &opts.image_names {
-            Some(v) => v.clone(),
-            None => (0..d.n).map(|i| format!("{i:06}.png")).collect(),
-        };
-        let pts = if c.points { subsample(&keep, c.max_points, opts.seed) } else { Vec::new() };
-        colmap_count = pts.len();
-        let model = colmap_model(refined, &scene.images, &sfm.cameras, &names, &pts, c)?;
-        write_colmap(&dir.join("sparse/0"), &model, c.text)?;
-        files.push("sparse/0".into());
-    }
-    let summary = ExportSummary { threshold: tau, ply_points: keep.len(), sfm_points: sfm_count, colmap_points: colmap_count, files };
-    write_json_atomic(&dir.join("config.json"), config)?;
+    let mut out = RunOutput::create(dir)?;
+    let summary = out.export(scene, sfm, refined, opts)?;
+    out.write_config(config)?;
     let mut meta = meta.clone();
     if let serde_json::Value::Object(m) = &mut meta {
-        m.insert("export".into(), serde_json::to_value(&summary).map_err(|e| SceneError::Invalid(format!("meta.json: {e}")))?);
+        m.insert(
+            "export".into(),
+            serde_json::to_value(&summary)
+                .map_err(|e| SceneError::Invalid(format!("meta.json: {e}")))?,
+        );
     }
-    write_json_atomic(&dir.join("meta.json"), &meta)?;
+    out.finish(&meta)?;
     Ok(summary)
+}
+
+/// Refined arrays in safetensors (`refined.safetensors`, [`RunOutput::write_refined`]).
+pub const REFINED_SAFETENSORS: &str = "refined.safetensors";
+/// Evaluation report (`evaluation.json`, [`RunOutput::write_evaluation`]).
+pub const EVALUATION_JSON: &str = "evaluation.json";
+/// Folder of the per-view error maps (`error_maps/view_{i:03}.png`,
+/// [`RunOutput::write_error_maps`]).
+pub const ERROR_MAP_DIR: &str = "error_maps";
+/// Run configuration (`config.json`, [`RunOutput::write_config`]).
+pub const CONFIG_JSON: &str = "config.json";
+/// Run metadata (`meta.json`, written once by [`RunOutput::finish`]).
+pub const META_JSON: &str = "meta.json";
+
+/// An RGB8 image for [`RunOutput::write_error_maps`]: `[height, width, 3]` row-major bytes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Rgb8Image {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// `3 * width * height` bytes, row-major RGB.
+    pub rgb: Vec<u8>,
+}
+
+/// Serialises `refined.safetensors`: `points` f32 `[N,h,w,3]` (SfM frame), `confidence` f32
+/// `[N,h,w]`, `covered` bool `[N,h,w]`, `aligned_ff_points` f32 `[N,h,w,3]` (the pre-aligned
+/// feed-forward points, SfM frame), `cam_from_world` f64 `[N,3,4]`, `K` f64 `[N,3,3]` (SfM
+/// cameras, ff pixels, pixel-centre convention); metadata `frame = sfm`. `path` names errors.
+pub fn refined_safetensors_bytes(
+    path: &Path,
+    refined: &RefinedScene,
+    sfm: &SfmResult,
+) -> Result<Vec<u8>, SceneError> {
+    let d = refined.dims;
+    let mut w = StWriter::new();
+    w.f32("points", &[d.n, d.h, d.w, 3], &refined.points);
+    w.f32("confidence", &[d.n, d.h, d.w], &refined.conf);
+    w.bool("covered", &[d.n, d.h, d.w], &refined.covered);
+    w.f32(
+        "aligned_ff_points",
+        &[d.n, d.h, d.w, 3],
+        &refined.aligned_ff,
+    );
+    w.extrinsics("cam_from_world", &sfm.cameras.cam_from_world);
+    w.intrinsics("K", &sfm.cameras.intrinsics);
+    let meta = [("frame", "sfm"), ("format", "ggpt-rs refined point map")]
+        .map(|(k, v)| (k.to_string(), v.to_string()));
+    Ok(w.finish(path, Some(meta.into_iter().collect()))?)
+}
+
+/// The one writer of a run's output folder (`pipeline.md` §9): it owns the directory and its
+/// file names, writes every file of a run atomically — the export files ([`RunOutput::export`]),
+/// `config.json`, `refined.safetensors`, `evaluation.json`, the error maps — and `meta.json`
+/// exactly once, at the end ([`RunOutput::finish`]). Values computed by higher crates (the
+/// evaluation report, the rendered error maps) are handed over ready to serialise.
+#[derive(Debug)]
+pub struct RunOutput {
+    dir: PathBuf,
+    files: Vec<String>,
+}
+
+impl RunOutput {
+    /// Creates `dir` (and its parents) if needed.
+    pub fn create(dir: &Path) -> Result<Self, SceneError> {
+        std::fs::create_dir_all(dir).map_err(|e| ggpt_core::CoreError::io(dir, e))?;
+        Ok(RunOutput {
+            dir: dir.to_path_buf(),
+            files: Vec::new(),
+        })
+    }
+
+    /// The output folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The result files written so far, relative to the folder, in write order (the export
+    /// files, `refined.safetensors`, `evaluation.json`, `error_maps/view_*.png`; not
+    /// `config.json` / `meta.json`): the `files` list of `meta.json`.
+    pub fn files(&self) -> &[String] {
+        &self.files
+    }
+
+    /// Writes the export files of §9 (PLY, npy / npz, COLMAP, as `opts` selects). `scene`
+    /// provides the images and the unaligned feed-forward points, `sfm` the cameras and DLT
+    /// points, `refined` the output of [`crate::driver::refine_scene`].
+    pub fn export(
+        &mut self,
+        scene: &Scene,
+        sfm: &SfmResult,
+        refined: &RefinedScene,
+        opts: &ExportOptions,
+    ) -> Result<ExportSummary, SceneError> {
+        let d = refined.dims;
+        let px = d.pixels();
+        check_len("export: refined points", refined.points.len(), 3 * px)?;
+        check_len("export: refined confidence", refined.conf.len(), px)?;
+        check_len("export: images", scene.images.len(), 3 * px)?;
+        check_len("export: sfm points", sfm.points.len(), 3 * px)?;
+        check_len("export: sfm mask", sfm.mask.len(), px)?;
+        let ff = scene.ff.as_ref().ok_or_else(|| {
+            SceneError::Invalid("export: the scene has no feed-forward prediction".into())
+        })?;
+        check_len("export: ff points", ff.points.len(), 3 * px)?;
+        let mut files = Vec::new();
+        let (tau, keep) = select_points(
+            &refined.conf,
+            opts.conf_quantile,
+            opts.max_points,
+            opts.seed,
+        )?;
+        let mut sfm_count = 0;
+        if opts.ply {
+            let cols = colors(&scene.images, &keep);
+            let conf_of = |c: &[f32]| {
+                opts.ply_confidence.then(|| {
+                    keep.iter()
+                        .map(|&p| c.get(p as usize).copied().unwrap_or(0.0))
+                        .collect()
+                })
+            };
+            let refined_cloud = PlyCloud {
+                points: keep
+                    .iter()
+                    .map(|&p| p3(&refined.points, p as usize))
+                    .collect(),
+                colors: cols.clone(),
+                confidence: conf_of(&refined.conf),
+            };
+            write_ply(&self.dir.join("ggpt_points.ply"), &refined_cloud)?;
+            let ff_cloud = PlyCloud {
+                points: keep.iter().map(|&p| p3(&ff.points, p as usize)).collect(),
+                colors: cols,
+                confidence: conf_of(&ff.conf),
+            };
+            write_ply(&self.dir.join("ff_points.ply"), &ff_cloud)?;
+            let dlt: Vec<u32> = sfm
+                .mask
+                .iter()
+                .enumerate()
+                .filter(|(_, m)| **m)
+                .map(|(p, _)| p as u32)
+                .collect();
+            let dlt = subsample(&dlt, opts.max_points, opts.seed);
+            sfm_count = dlt.len();
+            let sfm_cloud = PlyCloud {
+                points: dlt.iter().map(|&p| p3(&sfm.points, p as usize)).collect(),
+                colors: colors(&scene.images, &dlt),
+                confidence: None,
+            };
+            write_ply(&self.dir.join("sfm_points.ply"), &sfm_cloud)?;
+            files.extend(["ggpt_points.ply", "ff_points.ply", "sfm_points.ply"].map(String::from));
+        }
+        if opts.arrays {
+            let (n, h, w) = (d.n, d.h, d.w);
+            let points = arr(vec![n, h, w, 3], NpyData::F32(refined.points.clone()))?;
+            let conf = arr(vec![n, h, w], NpyData::F32(refined.conf.clone()))?;
+            let covered = arr(vec![n, h, w], NpyData::Bool(refined.covered.clone()))?;
+            let depth = arr(
+                vec![n, h, w],
+                NpyData::F32(depth_map(&refined.points, &sfm.cameras, d.hw())?),
+            )?;
+            let cams = arr(
+                vec![n, 3, 4],
+                NpyData::F64(
+                    sfm.cameras
+                        .cam_from_world
+                        .iter()
+                        .flat_map(|m| (0..12).map(move |i| m[(i / 4, i % 4)]))
+                        .collect(),
+                ),
+            )?;
+            let ks = arr(
+                vec![n, 3, 3],
+                NpyData::F64(
+                    sfm.cameras
+                        .intrinsics
+                        .iter()
+                        .flat_map(|m| (0..9).map(move |i| m[(i / 3, i % 3)]))
+                        .collect(),
+                ),
+            )?;
+            let imgs = arr(
+                vec![n, h, w, 3],
+                NpyData::U8(scene.images.iter().map(|&v| color_u8(v)).collect()),
+            )?;
+            write_npy(&self.dir.join("points.npy"), &points)?;
+            write_npy(&self.dir.join("confidence.npy"), &conf)?;
+            write_npy(&self.dir.join("covered.npy"), &covered)?;
+            write_npy(&self.dir.join("depth.npy"), &depth)?;
+            let members = [
+                ("points", &points),
+                ("confidence", &conf),
+                ("covered", &covered),
+                ("depth", &depth),
+                ("cam_from_world", &cams),
+                ("K", &ks),
+                ("images_ff", &imgs),
+            ];
+            write_npz(&self.dir.join("scene.npz"), &members, false)?;
+            files.extend(
+                [
+                    "points.npy",
+                    "confidence.npy",
+                    "covered.npy",
+                    "depth.npy",
+                    "scene.npz",
+                ]
+                .map(String::from),
+            );
+        }
+        let mut colmap_count = 0;
+        if let Some(c) = &opts.colmap {
+            let names: Vec<String> = match &opts.image_names {
+                Some(v) => v.clone(),
+                None => (0..d.n).map(|i| format!("{i:06}.png")).collect(),
+            };
+            let pts = if c.points {
+                subsample(&keep, c.max_points, opts.seed)
+            } else {
+                Vec::new()
+            };
+            colmap_count = pts.len();
+            let model = colmap_model(refined, &scene.images, &sfm.cameras, &names, &pts, c)?;
+            write_colmap(&self.dir.join("sparse/0"), &model, c.text)?;
+            files.push("sparse/0".into());
+        }
+        let summary = ExportSummary {
+            threshold: tau,
+            ply_points: keep.len(),
+            sfm_points: sfm_count,
+            colmap_points: colmap_count,
+            files,
+        };
+        self.files.extend(summary.files.iter().cloned());
+        Ok(summary)
+    }
+
+    /// Writes the run configuration as `config.json`.
+    pub fn write_config(&mut self, config: &serde_json::Value) -> Result<(), SceneError> {
+        write_json_atomic(&self.dir.join(CONFIG_JSON), config)?;
+        Ok(())
+    }
+
+    /// Writes `refined.safetensors` ([`refined_safetensors_bytes`]).
+    pub fn write_refined(
+        &mut self,
+        refined: &RefinedScene,
+        sfm: &SfmResult,
+    ) -> Result<(), SceneError> {
+        let path = self.dir.join(REFINED_SAFETENSORS);
+        let bytes = refined_safetensors_bytes(&path, refined, sfm)?;
+        ggpt_core::io::atomic::write_bytes_atomic(&path, &bytes)?;
+        self.files.push(REFINED_SAFETENSORS.into());
+        Ok(())
+    }
+
+    /// Writes the evaluation report as `evaluation.json`.
+    pub fn write_evaluation(
+        &mut self,
+        evaluation: &impl serde::Serialize,
+    ) -> Result<(), SceneError> {
+        write_json_atomic(&self.dir.join(EVALUATION_JSON), evaluation)?;
+        self.files.push(EVALUATION_JSON.into());
+        Ok(())
+    }
+
+    /// Writes one PNG per view, `error_maps/view_{i:03}.png` (`maps[i]` = view `i`); returns
+    /// the paths written.
+    pub fn write_error_maps(&mut self, maps: &[Rgb8Image]) -> Result<Vec<PathBuf>, SceneError> {
+        let dir = self.dir.join(ERROR_MAP_DIR);
+        let mut paths = Vec::with_capacity(maps.len());
+        for (v, m) in maps.iter().enumerate() {
+            let path = dir.join(format!("view_{v:03}.png"));
+            ggpt_core::io::png::write_rgb8(&path, m.width, m.height, &m.rgb)?;
+            paths.push(path);
+        }
+        self.files.push(format!("{ERROR_MAP_DIR}/view_*.png"));
+        Ok(paths)
+    }
+
+    /// Writes `meta.json` (once: the run is complete) and returns its path.
+    pub fn finish(self, meta: &serde_json::Value) -> Result<PathBuf, SceneError> {
+        let path = self.dir.join(META_JSON);
+        write_json_atomic(&path, meta)?;
+        Ok(path)
+    }
 }
 
 #[cfg(test)]
@@ -361,7 +665,11 @@ mod tests {
         let rank = 0.2f32 * 999_999.0;
         let lo = rank.floor();
         let w = rank - lo;
-        let want = if w < 0.5 { lo + w } else { (lo + 1.0) - (1.0 - w) };
+        let want = if w < 0.5 {
+            lo + w
+        } else {
+            (lo + 1.0) - (1.0 - w)
+        };
         assert_eq!(confidence_threshold(&v, 0.2).unwrap(), want);
     }
 
@@ -410,11 +718,23 @@ mod tests {
         use crate::driver::tests::{MockRefiner, fixture_opts, fixture_scene};
         use ggpt_core::io::{colmap::read_colmap, npy::read_npy, npy::read_npz, ply::read_ply};
         let (scene, sfm) = fixture_scene();
-        let mut m = MockRefiner { offset_per_chunk: 0.0, calls: vec![], seen: vec![] };
+        let mut m = MockRefiner {
+            offset_per_chunk: 0.0,
+            calls: vec![],
+            seen: vec![],
+        };
         let refined = crate::driver::refine_scene(&scene, &sfm, &mut m, &fixture_opts()).unwrap();
         let dir = tempfile::tempdir().unwrap();
-        let colmap = ColmapExportOptions { resolution: Some((84, 112)), max_points: 50, ..ColmapExportOptions::default() };
-        let opts = ExportOptions { max_points: 2000, colmap: Some(colmap), ..ExportOptions::default() };
+        let colmap = ColmapExportOptions {
+            resolution: Some((84, 112)),
+            max_points: 50,
+            ..ColmapExportOptions::default()
+        };
+        let opts = ExportOptions {
+            max_points: 2000,
+            colmap: Some(colmap),
+            ..ExportOptions::default()
+        };
         let cfg = serde_json::json!({"chunking": fixture_opts()});
         let meta = serde_json::json!({"seed": 42});
         let sum = export_scene(dir.path(), &scene, &sfm, &refined, &opts, &cfg, &meta).unwrap();
@@ -424,26 +744,60 @@ mod tests {
         let ply = read_ply(&dir.path().join("ggpt_points.ply")).unwrap();
         assert_eq!(ply.points.len(), 2000);
         let p0 = keep[0] as usize;
-        assert_eq!(ply.points[0], [refined.points[3 * p0], refined.points[3 * p0 + 1], refined.points[3 * p0 + 2]]);
-        assert_eq!(ply.colors[0], [0, 1, 2].map(|a| color_u8(scene.images[3 * p0 + a])));
+        assert_eq!(
+            ply.points[0],
+            [
+                refined.points[3 * p0],
+                refined.points[3 * p0 + 1],
+                refined.points[3 * p0 + 2]
+            ]
+        );
+        assert_eq!(
+            ply.colors[0],
+            [0, 1, 2].map(|a| color_u8(scene.images[3 * p0 + a]))
+        );
         assert!(ply.confidence.as_ref().unwrap().iter().all(|&c| c >= tau));
         let ffp = read_ply(&dir.path().join("ff_points.ply")).unwrap();
         let ff = scene.ff.as_ref().unwrap();
-        assert_eq!(ffp.points[0], [ff.points[3 * p0], ff.points[3 * p0 + 1], ff.points[3 * p0 + 2]]);
+        assert_eq!(
+            ffp.points[0],
+            [
+                ff.points[3 * p0],
+                ff.points[3 * p0 + 1],
+                ff.points[3 * p0 + 2]
+            ]
+        );
         let sp = read_ply(&dir.path().join("sfm_points.ply")).unwrap();
-        assert_eq!(sp.points.len(), 2000.min(sfm.mask.iter().filter(|&&b| b).count()));
+        assert_eq!(
+            sp.points.len(),
+            2000.min(sfm.mask.iter().filter(|&&b| b).count())
+        );
         assert!(sp.confidence.is_none());
         let pts = read_npy(&dir.path().join("points.npy")).unwrap();
         assert_eq!(pts.shape, vec![4, 42, 56, 3]);
         assert_eq!(pts.to_f32().unwrap(), refined.points);
-        let depth = read_npy(&dir.path().join("depth.npy")).unwrap().to_f32().unwrap();
+        let depth = read_npy(&dir.path().join("depth.npy"))
+            .unwrap()
+            .to_f32()
+            .unwrap();
         // Depth = z of the refined point in its own SfM camera.
         let c = &sfm.cameras.cam_from_world[0];
         let x = &refined.points[0..3];
-        let z = c[(2, 0)] * f64::from(x[0]) + c[(2, 1)] * f64::from(x[1]) + c[(2, 2)] * f64::from(x[2]) + c[(2, 3)];
+        let z = c[(2, 0)] * f64::from(x[0])
+            + c[(2, 1)] * f64::from(x[1])
+            + c[(2, 2)] * f64::from(x[2])
+            + c[(2, 3)];
         assert!((f64::from(depth[0]) - z).abs() < 1e-5);
         let npz = read_npz(&dir.path().join("scene.npz")).unwrap();
-        for k in ["points", "confidence", "covered", "depth", "cam_from_world", "K", "images_ff"] {
+        for k in [
+            "points",
+            "confidence",
+            "covered",
+            "depth",
+            "cam_from_world",
+            "K",
+            "images_ff",
+        ] {
             assert!(npz.contains_key(k), "scene.npz lacks {k}");
         }
         assert_eq!(npz["K"].shape, vec![4, 3, 3]);
@@ -460,11 +814,16 @@ mod tests {
         assert_eq!(obs, 0);
         let colmap_pts = subsample(&keep, 50, crate::driver::DEFAULT_SEED);
         for (p, &px) in model.points3d.iter().zip(&colmap_pts) {
-            assert!(p.track.is_empty() && p.error == COLMAP_UNDEFINED_ERROR, "point {}", p.id);
+            assert!(
+                p.track.is_empty() && p.error == COLMAP_UNDEFINED_ERROR,
+                "point {}",
+                p.id
+            );
             assert_eq!(p.xyz, p3(&refined.points, px as usize).map(f64::from));
             assert_eq!(p.rgb, p3(&scene.images, px as usize).map(color_u8));
         }
-        let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("meta.json")).unwrap()).unwrap();
+        let meta: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.path().join("meta.json")).unwrap()).unwrap();
         assert_eq!(meta["seed"], 42);
         assert_eq!(meta["export"]["ply_points"], 2000);
         assert!(dir.path().join("config.json").is_file());

@@ -63,8 +63,16 @@ impl FusionAccumulator {
         FusionAccumulator {
             mode,
             sum: vec![0.0; 3 * pixels],
-            weighted_sum: if weighted { vec![0.0; 3 * pixels] } else { Vec::new() },
-            weight: if weighted { vec![0.0; pixels] } else { Vec::new() },
+            weighted_sum: if weighted {
+                vec![0.0; 3 * pixels]
+            } else {
+                Vec::new()
+            },
+            weight: if weighted {
+                vec![0.0; pixels]
+            } else {
+                Vec::new()
+            },
             conf_sum: vec![0.0; pixels],
             count: vec![0; pixels],
             chunks: 0,
@@ -83,18 +91,33 @@ impl FusionAccumulator {
     /// Adds one chunk: `pixels[i]` (scene pixel index) receives `points[i]` (SfM frame, already
     /// un-normalised) with confidence `conf[i]`. Errors on length mismatches, out-of-range pixels
     /// and non-finite values (nothing is added then).
-    pub fn add_chunk(&mut self, pixels: &[u32], points: &[[f32; 3]], conf: &[f32]) -> Result<(), SceneError> {
+    pub fn add_chunk(
+        &mut self,
+        pixels: &[u32],
+        points: &[[f32; 3]],
+        conf: &[f32],
+    ) -> Result<(), SceneError> {
         check_len("fusion: chunk points", points.len(), pixels.len())?;
         check_len("fusion: chunk confidences", conf.len(), pixels.len())?;
         let total = self.pixels();
         if let Some(&p) = pixels.iter().find(|&&p| p as usize >= total) {
-            return Err(SceneError::Invalid(format!("fusion: pixel {p} out of range ({total} pixels)")));
+            return Err(SceneError::Invalid(format!(
+                "fusion: pixel {p} out of range ({total} pixels)"
+            )));
         }
         if let Some(i) = points.iter().position(|x| !x.iter().all(|v| v.is_finite())) {
-            return Err(SceneError::NonFinite { what: "fusion: refined chunk points".into(), index: i, value: f64::NAN });
+            return Err(SceneError::NonFinite {
+                what: "fusion: refined chunk points".into(),
+                index: i,
+                value: f64::NAN,
+            });
         }
         if let Some(i) = conf.iter().position(|v| !v.is_finite()) {
-            return Err(SceneError::NonFinite { what: "fusion: refined chunk confidence".into(), index: i, value: f64::from(conf[i]) });
+            return Err(SceneError::NonFinite {
+                what: "fusion: refined chunk confidence".into(),
+                index: i,
+                value: f64::from(conf[i]),
+            });
         }
         for ((&p, x), &c) in pixels.iter().zip(points).zip(conf) {
             let p = p as usize;
@@ -117,12 +140,18 @@ impl FusionAccumulator {
 
     /// Final fused arrays. `fallback_points` is the aligned `X_d` (`[P, 3]`, SfM frame) and
     /// `fallback_conf` its feed-forward confidence (`[P]`, used only when no chunk was added).
-    pub fn finish(self, fallback_points: &[f32], fallback_conf: &[f32]) -> Result<Fused, SceneError> {
+    pub fn finish(
+        self,
+        fallback_points: &[f32],
+        fallback_conf: &[f32],
+    ) -> Result<Fused, SceneError> {
         let n = self.pixels();
         check_len("fusion: fallback points", fallback_points.len(), 3 * n)?;
         check_len("fusion: fallback confidence", fallback_conf.len(), n)?;
         if self.chunks == 0 {
-            tracing::warn!("no chunk was refined: output = aligned feed-forward points with their feed-forward confidence");
+            tracing::warn!(
+                "no chunk was refined: output = aligned feed-forward points with their feed-forward confidence"
+            );
             return Ok(Fused {
                 points: fallback_points.to_vec(),
                 conf: fallback_conf.to_vec(),
@@ -141,13 +170,23 @@ impl FusionAccumulator {
             let kf = f64::from(k);
             let w = self.weight.get(p).copied().unwrap_or(0.0);
             for a in 0..3 {
-                let v = if self.mode == FusionMode::ConfidenceWeighted && w > 0.0 { self.weighted_sum[3 * p + a] / w } else { self.sum[3 * p + a] / kf };
+                let v = if self.mode == FusionMode::ConfidenceWeighted && w > 0.0 {
+                    self.weighted_sum[3 * p + a] / w
+                } else {
+                    self.sum[3 * p + a] / kf
+                };
                 points[3 * p + a] = v as f32;
             }
             conf[p] = (self.conf_sum[p] / kf) as f32;
         }
         let covered = self.count.iter().map(|&c| c > 0).collect();
-        Ok(Fused { points, conf, covered, count: self.count, no_chunk_fallback: false })
+        Ok(Fused {
+            points,
+            conf,
+            covered,
+            count: self.count,
+            no_chunk_fallback: false,
+        })
     }
 }
 
@@ -160,7 +199,8 @@ mod tests {
         let fallback = [9.0, 9.0, 9.0, 8.0, 8.0, 8.0, 7.0, 7.0, 7.0];
         let ff_conf = [5.0, 5.0, 5.0];
         let mut acc = FusionAccumulator::new(3, FusionMode::Mean);
-        acc.add_chunk(&[0, 1], &[[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]], &[1.0, 10.0]).unwrap();
+        acc.add_chunk(&[0, 1], &[[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]], &[1.0, 10.0])
+            .unwrap();
         acc.add_chunk(&[1], &[[2.0, 4.0, 6.0]], &[20.0]).unwrap();
         let f = acc.finish(&fallback, &ff_conf).unwrap();
         assert_eq!(f.points, vec![1.0, 2.0, 3.0, 1.0, 2.0, 3.0, 7.0, 7.0, 7.0]);
@@ -174,8 +214,10 @@ mod tests {
     fn confidence_weighted_extension() {
         let fallback = [0.0f32; 6];
         let mut acc = FusionAccumulator::new(2, FusionMode::ConfidenceWeighted);
-        acc.add_chunk(&[0, 1], &[[0.0; 3], [1.0; 3]], &[1.0, 0.0]).unwrap();
-        acc.add_chunk(&[0, 1], &[[4.0; 3], [3.0; 3]], &[3.0, 0.0]).unwrap();
+        acc.add_chunk(&[0, 1], &[[0.0; 3], [1.0; 3]], &[1.0, 0.0])
+            .unwrap();
+        acc.add_chunk(&[0, 1], &[[4.0; 3], [3.0; 3]], &[3.0, 0.0])
+            .unwrap();
         let f = acc.finish(&fallback, &[0.0; 2]).unwrap();
         assert_eq!(&f.points[..3], &[3.0; 3]); // (1*0 + 3*4) / 4
         assert_eq!(&f.points[3..], &[2.0; 3]); // zero weights -> plain mean
@@ -192,7 +234,10 @@ mod tests {
         assert_eq!(f.covered, vec![false]);
         let mut acc = FusionAccumulator::new(1, FusionMode::Mean);
         assert!(acc.add_chunk(&[1], &[[0.0; 3]], &[1.0]).is_err());
-        assert!(acc.add_chunk(&[0], &[[f32::NAN, 0.0, 0.0]], &[1.0]).is_err());
+        assert!(
+            acc.add_chunk(&[0], &[[f32::NAN, 0.0, 0.0]], &[1.0])
+                .is_err()
+        );
         assert!(acc.add_chunk(&[0], &[[0.0; 3]], &[]).is_err());
         assert_eq!(acc.chunks(), 0);
     }

@@ -28,8 +28,8 @@ pub mod roi;
 #[cfg(test)]
 pub(crate) mod test_util;
 
-pub use driver::{ChunkRefiner, RefineOptions, RefinedChunk, RefinedScene, refine_scene};
 pub use chunker::{Chunk, ChunkParams, ChunkSampler, DrawSource, PcgDraws};
+pub use driver::{ChunkRefiner, RefineOptions, RefinedChunk, RefinedScene, refine_scene};
 
 pub use error::SceneError;
 pub use record::ChunkRecord;

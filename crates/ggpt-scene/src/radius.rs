@@ -47,21 +47,35 @@ pub struct SceneRadius {
 ///
 /// Errors: array sizes not matching `dims`, fewer than 2 points for a pooled std, a non-finite
 /// or negative result.
-pub fn scene_radius(points: &[f32], dims: Dims, rule: RadiusRule, roi: Option<&[bool]>) -> Result<SceneRadius, SceneError> {
+pub fn scene_radius(
+    points: &[f32],
+    dims: Dims,
+    rule: RadiusRule,
+    roi: Option<&[bool]>,
+) -> Result<SceneRadius, SceneError> {
     let px = dims.pixels();
     check_len("radius: points", points.len(), 3 * px)?;
     if let Some(f) = roi {
         check_len("radius: region-of-interest mask", f.len(), px)?;
     }
-    let effective = if roi.is_some() || dims.n < 2 { RadiusRule::Pooled } else { rule };
+    let effective = if roi.is_some() || dims.n < 2 {
+        RadiusRule::Pooled
+    } else {
+        rule
+    };
     let radius = match effective {
         RadiusRule::AcrossViews => across_views(points, dims),
         RadiusRule::Pooled => pooled(points, roi)?,
     };
     if !radius.is_finite() || radius < 0.0 {
-        return Err(SceneError::Numeric(format!("scene radius is {radius} ({effective:?} rule)")));
+        return Err(SceneError::Numeric(format!(
+            "scene radius is {radius} ({effective:?} rule)"
+        )));
     }
-    Ok(SceneRadius { radius, rule: effective })
+    Ok(SceneRadius {
+        radius,
+        rule: effective,
+    })
 }
 
 /// `3 · mean_{y,x,a} std_n` (unbiased, `N ≥ 2`), emulating the official torch arithmetic on an
@@ -94,7 +108,9 @@ fn pooled(points: &[f32], roi: Option<&[bool]>) -> Result<f64, SceneError> {
         }
     }
     if count < 2 {
-        return Err(SceneError::Numeric(format!("scene radius: {count} point(s) in the region of interest, need at least 2")));
+        return Err(SceneError::Numeric(format!(
+            "scene radius: {count} point(s) in the region of interest, need at least 2"
+        )));
     }
     let mean = sum.map(|s| s / count as f64);
     let mut ss = [0.0f64; 3];
@@ -143,18 +159,30 @@ mod tests {
         assert!((p.radius - r.radius).abs() < 1e-6);
         // Two views, two pixels: across-view std differs from pooled std.
         let dims = Dims { n: 2, h: 1, w: 2 };
-        let pts = [0.0, 0.0, 0.0, 10.0, 10.0, 10.0, 1.0, 1.0, 1.0, 11.0, 11.0, 11.0];
+        let pts = [
+            0.0, 0.0, 0.0, 10.0, 10.0, 10.0, 1.0, 1.0, 1.0, 11.0, 11.0, 11.0,
+        ];
         let a = scene_radius(&pts, dims, RadiusRule::AcrossViews, None).unwrap();
-        assert!((a.radius - 3.0 * 2f64.sqrt().recip()).abs() < 1e-6, "{}", a.radius);
+        assert!(
+            (a.radius - 3.0 * 2f64.sqrt().recip()).abs() < 1e-6,
+            "{}",
+            a.radius
+        );
         let p = scene_radius(&pts, dims, RadiusRule::Pooled, None).unwrap();
         // per axis values 0,10,1,11: mean 5.5, ss = 30.25+20.25+20.25+30.25 = 101, var = 101/3
-        assert!((p.radius - 3.0 * (101.0f64 / 3.0).sqrt()).abs() < 1e-5, "{}", p.radius);
+        assert!(
+            (p.radius - 3.0 * (101.0f64 / 3.0).sqrt()).abs() < 1e-5,
+            "{}",
+            p.radius
+        );
     }
 
     #[test]
     fn mask_forces_pooled_and_single_view_falls_back() {
         let dims = Dims { n: 2, h: 1, w: 2 };
-        let pts = [0.0, 0.0, 0.0, 100.0, 100.0, 100.0, 1.0, 1.0, 1.0, 11.0, 11.0, 11.0];
+        let pts = [
+            0.0, 0.0, 0.0, 100.0, 100.0, 100.0, 1.0, 1.0, 1.0, 11.0, 11.0, 11.0,
+        ];
         let roi = [true, false, true, false];
         let r = scene_radius(&pts, dims, RadiusRule::AcrossViews, Some(&roi)).unwrap();
         assert_eq!(r.rule, RadiusRule::Pooled);

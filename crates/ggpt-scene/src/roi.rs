@@ -45,18 +45,33 @@ fn in_box(x: &[f32], lo: &[f32; 3], hi: &[f32; 3]) -> bool {
 impl RegionOfInterest {
     /// `F` and `M_s ∧ ...` for aligned dense points `ff_aligned` (`[P, 3]`, SfM frame), DLT
     /// points `dlt_points` (`[P, 3]`) and mask `dlt_mask` (`[P]`).
-    pub fn masks(&self, ff_aligned: &[f32], dlt_points: &[f32], dlt_mask: &[bool]) -> Result<RoiMasks, SceneError> {
+    pub fn masks(
+        &self,
+        ff_aligned: &[f32],
+        dlt_points: &[f32],
+        dlt_mask: &[bool],
+    ) -> Result<RoiMasks, SceneError> {
         let p = dlt_mask.len();
         check_len("roi: aligned dense points", ff_aligned.len(), 3 * p)?;
         check_len("roi: DLT points", dlt_points.len(), 3 * p)?;
         match self {
             RegionOfInterest::Mask(f) => {
                 check_len("roi: region-of-interest mask", f.len(), p)?;
-                Ok(RoiMasks { dense: f.clone(), dlt_mask: dlt_mask.iter().zip(f).map(|(&m, &k)| m && k).collect() })
+                Ok(RoiMasks {
+                    dense: f.clone(),
+                    dlt_mask: dlt_mask.iter().zip(f).map(|(&m, &k)| m && k).collect(),
+                })
             }
             RegionOfInterest::Box { min, max } => Ok(RoiMasks {
-                dense: ff_aligned.chunks_exact(3).map(|x| in_box(x, min, max)).collect(),
-                dlt_mask: dlt_points.chunks_exact(3).zip(dlt_mask).map(|(x, &m)| m && in_box(x, min, max)).collect(),
+                dense: ff_aligned
+                    .chunks_exact(3)
+                    .map(|x| in_box(x, min, max))
+                    .collect(),
+                dlt_mask: dlt_points
+                    .chunks_exact(3)
+                    .zip(dlt_mask)
+                    .map(|(x, &m)| m && in_box(x, min, max))
+                    .collect(),
             }),
         }
     }
@@ -66,9 +81,23 @@ impl RegionOfInterest {
 /// SfM frame) and GT mask: `ρ = 3 · mean_axis std(GT points)` (unbiased, f64), box =
 /// `[min - 0.1 ρ, max + 0.1 ρ]` per axis (f32 arithmetic as the official torch code).
 pub fn gt_roi_box(gt_aligned: &[f32], gt_mask: &[bool]) -> Result<RegionOfInterest, SceneError> {
-    check_len("roi: aligned GT points", gt_aligned.len(), 3 * gt_mask.len())?;
-    let dims = ggpt_core::Dims { n: 1, h: 1, w: gt_mask.len() };
-    let rho = crate::radius::scene_radius(gt_aligned, dims, crate::radius::RadiusRule::Pooled, Some(gt_mask))?.radius;
+    check_len(
+        "roi: aligned GT points",
+        gt_aligned.len(),
+        3 * gt_mask.len(),
+    )?;
+    let dims = ggpt_core::Dims {
+        n: 1,
+        h: 1,
+        w: gt_mask.len(),
+    };
+    let rho = crate::radius::scene_radius(
+        gt_aligned,
+        dims,
+        crate::radius::RadiusRule::Pooled,
+        Some(gt_mask),
+    )?
+    .radius;
     let margin = (rho * ROI_BOX_MARGIN) as f32;
     let mut lo = [f32::INFINITY; 3];
     let mut hi = [f32::NEG_INFINITY; 3];
@@ -78,7 +107,10 @@ pub fn gt_roi_box(gt_aligned: &[f32], gt_mask: &[bool]) -> Result<RegionOfIntere
             hi[a] = hi[a].max(x[a]);
         }
     }
-    Ok(RegionOfInterest::Box { min: lo.map(|v| v - margin), max: hi.map(|v| v + margin) })
+    Ok(RegionOfInterest::Box {
+        min: lo.map(|v| v - margin),
+        max: hi.map(|v| v + margin),
+    })
 }
 
 #[cfg(test)]
@@ -91,14 +123,21 @@ mod tests {
         let ff = [0.5, 0.5, 0.5, 2.0, 0.5, 0.5, 0.5, 0.5, 0.5, 1.0, 1.0, 1.0];
         let dlt = [0.5, 0.5, 0.5, 0.5, 0.5, 0.5, 5.0, 0.0, 0.0, 0.0, 0.0, 0.0];
         let msk = [true, true, true, false];
-        let b = RegionOfInterest::Box { min: [0.0; 3], max: [1.0; 3] };
+        let b = RegionOfInterest::Box {
+            min: [0.0; 3],
+            max: [1.0; 3],
+        };
         let m = b.masks(&ff, &dlt, &msk).unwrap();
         assert_eq!(m.dense, vec![true, false, true, true]); // closed box: (1,1,1) inside
         assert_eq!(m.dlt_mask, vec![true, true, false, false]);
         let f = RegionOfInterest::Mask(vec![true, false, true, true]);
         let m = f.masks(&ff, &dlt, &msk).unwrap();
         assert_eq!(m.dlt_mask, vec![true, false, true, false]);
-        assert!(RegionOfInterest::Mask(vec![true]).masks(&ff, &dlt, &msk).is_err());
+        assert!(
+            RegionOfInterest::Mask(vec![true])
+                .masks(&ff, &dlt, &msk)
+                .is_err()
+        );
     }
 
     #[test]

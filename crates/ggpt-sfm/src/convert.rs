@@ -4,48 +4,34 @@
 //! computed in f32 in the operation order of the official PyTorch code so that the downstream
 //! strict threshold comparisons see the same values.
 
+use ggpt_core::resize::{BilinearRounding, resize_bilinear};
+
 use crate::error::{Result, SfmError};
 
 /// PyTorch `interpolate(mode = "bilinear", align_corners = false)` (no antialias) of one
-/// `in_h x in_w` channel (row-major) to `out_h x out_w`, in f32.
-///
-/// Output index `i` reads source coordinate `max((i + 0.5) in / out - 0.5, 0)`; the upper
-/// neighbour is clamped to `in - 1`. The four taps are combined in the order (and with the fused
-/// multiply-adds) of PyTorch's CPU kernel, so that the f32 results are bit-identical.
-pub fn resize_bilinear(src: &[f32], in_h: usize, in_w: usize, out_h: usize, out_w: usize) -> Result<Vec<f32>> {
-    if src.len() != in_h * in_w || in_h == 0 || in_w == 0 {
-        return Err(SfmError::Shape(format!("resize: {} values for a {in_h}x{in_w} image", src.len())));
-    }
-    let ys = taps(in_h, out_h);
-    let xs = taps(in_w, out_w);
-    let mut out = Vec::with_capacity(out_h * out_w);
-    for &(y0, y1, wy0, wy1) in &ys {
-        let r0 = &src[y0 * in_w..(y0 + 1) * in_w];
-        let r1 = &src[y1 * in_w..(y1 + 1) * in_w];
-        for &(x0, x1, wx0, wx1) in &xs {
-            // PyTorch's CPU kernel (channels-last scalar path, compiled with FMA contraction):
-            // fma(i11, w11, fma(i10, w10, fma(i00, w00, i01 * w01))) with w_ab = h_a * w_b.
-            // This order reproduces the fixture's resized RoMa scores bit for bit.
-            let (w00, w01, w10, w11) = (wy0 * wx0, wy0 * wx1, wy1 * wx0, wy1 * wx1);
-            out.push(r1[x1].mul_add(w11, r1[x0].mul_add(w10, r0[x0].mul_add(w00, r0[x1] * w01))));
-        }
-    }
-    Ok(out)
-}
-
-/// Source taps `(i0, i1, w0, w1)` of each output index along one axis (PyTorch
-/// `compute_indices_weights_linear` with `align_corners = false`).
-fn taps(input: usize, output: usize) -> Vec<(usize, usize, f32, f32)> {
-    let scale = input as f32 / output as f32;
-    (0..output)
-        .map(|i| {
-            let real = (scale * (i as f32 + 0.5) - 0.5).max(0.0);
-            let i0 = (real.floor() as usize).min(input - 1);
-            let lambda = (real - i0 as f32).clamp(0.0, 1.0);
-            let i1 = if i0 < input - 1 { i0 + 1 } else { i0 };
-            (i0, i1, 1.0 - lambda, lambda)
-        })
-        .collect()
+/// `in_h x in_w` channel (row-major) to `out_h x out_w`, in f32, with the tap order of PyTorch's
+/// channels-last CPU kernel ([`BilinearRounding::ChannelsLastFma`]): bit-identical to the
+/// official resize of the matcher outputs.
+fn resize_map(
+    src: &[f32],
+    in_h: usize,
+    in_w: usize,
+    out_h: usize,
+    out_w: usize,
+) -> Result<Vec<f32>> {
+    resize_bilinear(
+        src,
+        in_h,
+        in_w,
+        1,
+        out_h,
+        out_w,
+        BilinearRounding::ChannelsLastFma,
+    )
+    .map_err(|e| match e {
+        ggpt_core::CoreError::Invalid(m) => SfmError::Shape(m),
+        other => SfmError::Core(other),
+    })
 }
 
 /// RoMa v1 / v2 (`sfm.md` §2.3): a warp `[hm, wm, 2]` of normalised *edge* coordinates
@@ -53,7 +39,14 @@ fn taps(input: usize, output: usize) -> Vec<(usize, usize, f32, f32)> {
 /// bilinearly to `(h, w)` and converted to ff pixels `x = (u + 1) / 2 * w - 0.5`.
 /// The score is not zeroed where the warp leaves the image.
 /// Returns (`[h*w, 2]` match locations in the target view, `[h*w]` scores).
-pub fn roma_to_ff(warp: &[f32], overlap: &[f32], hm: usize, wm: usize, h: usize, w: usize) -> Result<(Vec<f32>, Vec<f32>)> {
+pub fn roma_to_ff(
+    warp: &[f32],
+    overlap: &[f32],
+    hm: usize,
+    wm: usize,
+    h: usize,
+    w: usize,
+) -> Result<(Vec<f32>, Vec<f32>)> {
     if warp.len() != hm * wm * 2 || overlap.len() != hm * wm {
         return Err(SfmError::Shape(format!(
             "RoMa warp/overlap: {} / {} values for matcher resolution {hm}x{wm}",
@@ -63,9 +56,9 @@ pub fn roma_to_ff(warp: &[f32], overlap: &[f32], hm: usize, wm: usize, h: usize,
     }
     let ux: Vec<f32> = warp.iter().step_by(2).copied().collect();
     let uy: Vec<f32> = warp.iter().skip(1).step_by(2).copied().collect();
-    let rx = resize_bilinear(&ux, hm, wm, h, w)?;
-    let ry = resize_bilinear(&uy, hm, wm, h, w)?;
-    let score = resize_bilinear(overlap, hm, wm, h, w)?;
+    let rx = resize_map(&ux, hm, wm, h, w)?;
+    let ry = resize_map(&uy, hm, wm, h, w)?;
+    let score = resize_map(overlap, hm, wm, h, w)?;
     let (wf, hf) = (w as f32, h as f32);
     let mut m = Vec::with_capacity(2 * h * w);
     for (x, y) in rx.iter().zip(&ry) {
@@ -79,14 +72,25 @@ pub fn roma_to_ff(warp: &[f32], overlap: &[f32], hm: usize, wm: usize, h: usize,
 /// `[ho, wo]` are resized bilinearly to `(h, w)`, the flow scaled by `w / wo`, `h / ho` and the
 /// pixel grid added; the score is set to 0 where the warp falls outside `[0, w) x [0, h)`.
 /// Returns (`[h*w, 2]` locations, `[h*w]` scores).
-pub fn ufm_to_ff(flow: &[f32], covis: &[f32], ho: usize, wo: usize, h: usize, w: usize) -> Result<(Vec<f32>, Vec<f32>)> {
+pub fn ufm_to_ff(
+    flow: &[f32],
+    covis: &[f32],
+    ho: usize,
+    wo: usize,
+    h: usize,
+    w: usize,
+) -> Result<(Vec<f32>, Vec<f32>)> {
     let n = ho * wo;
     if flow.len() != 2 * n || covis.len() != n {
-        return Err(SfmError::Shape(format!("UFM flow/covisibility: {} / {} values for output resolution {ho}x{wo}", flow.len(), covis.len())));
+        return Err(SfmError::Shape(format!(
+            "UFM flow/covisibility: {} / {} values for output resolution {ho}x{wo}",
+            flow.len(),
+            covis.len()
+        )));
     }
-    let fx = resize_bilinear(&flow[..n], ho, wo, h, w)?;
-    let fy = resize_bilinear(&flow[n..], ho, wo, h, w)?;
-    let mut score = resize_bilinear(covis, ho, wo, h, w)?;
+    let fx = resize_map(&flow[..n], ho, wo, h, w)?;
+    let fy = resize_map(&flow[n..], ho, wo, h, w)?;
+    let mut score = resize_map(covis, ho, wo, h, w)?;
     let sx = w as f32 / wo as f32;
     let sy = h as f32 / ho as f32;
     let mut m = Vec::with_capacity(2 * h * w);
@@ -123,15 +127,26 @@ pub fn ff_to_matcher(x_f: f64, y_f: f64, hm: usize, wm: usize, h: usize, w: usiz
 /// `[hm, wm]`. The warp is sampled at the matcher location of each ff pixel centre (bilinear,
 /// border-clamped, which is exactly the `align_corners = false` resize) and its values mapped to
 /// ff pixels with [`matcher_to_ff`]. Returns (`[h*w, 2]`, `[h*w]`).
-pub fn generic_to_ff(warp: &[f32], score: &[f32], hm: usize, wm: usize, h: usize, w: usize) -> Result<(Vec<f32>, Vec<f32>)> {
+pub fn generic_to_ff(
+    warp: &[f32],
+    score: &[f32],
+    hm: usize,
+    wm: usize,
+    h: usize,
+    w: usize,
+) -> Result<(Vec<f32>, Vec<f32>)> {
     if warp.len() != hm * wm * 2 || score.len() != hm * wm {
-        return Err(SfmError::Shape(format!("generic warp/score: {} / {} values for {hm}x{wm}", warp.len(), score.len())));
+        return Err(SfmError::Shape(format!(
+            "generic warp/score: {} / {} values for {hm}x{wm}",
+            warp.len(),
+            score.len()
+        )));
     }
     let ux: Vec<f32> = warp.iter().step_by(2).copied().collect();
     let uy: Vec<f32> = warp.iter().skip(1).step_by(2).copied().collect();
-    let rx = resize_bilinear(&ux, hm, wm, h, w)?;
-    let ry = resize_bilinear(&uy, hm, wm, h, w)?;
-    let sc = resize_bilinear(score, hm, wm, h, w)?;
+    let rx = resize_map(&ux, hm, wm, h, w)?;
+    let ry = resize_map(&uy, hm, wm, h, w)?;
+    let sc = resize_map(score, hm, wm, h, w)?;
     let mut m = Vec::with_capacity(2 * h * w);
     for (x, y) in rx.iter().zip(&ry) {
         let (xf, yf) = matcher_to_ff(*x as f64, *y as f64, hm, wm, h, w);
@@ -144,19 +159,6 @@ pub fn generic_to_ff(warp: &[f32], score: &[f32], hm: usize, wm: usize, h: usize
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn resize_identity_and_upsample() {
-        let src = [0.0f32, 1.0, 2.0, 3.0];
-        assert_eq!(resize_bilinear(&src, 2, 2, 2, 2).unwrap(), src.to_vec());
-        // 1 x 2 -> 1 x 4: PyTorch gives [0, 0.25, 0.75, 1]
-        let out = resize_bilinear(&[0.0, 1.0], 1, 2, 1, 4).unwrap();
-        assert_eq!(out, vec![0.0, 0.25, 0.75, 1.0]);
-        // 1 x 4 -> 1 x 2 (downsample): source coords 0.5, 2.5
-        let out = resize_bilinear(&[0.0, 1.0, 2.0, 3.0], 1, 4, 1, 2).unwrap();
-        assert_eq!(out, vec![0.5, 2.5]);
-        assert!(resize_bilinear(&[0.0; 3], 2, 2, 1, 1).is_err());
-    }
 
     #[test]
     fn roma_edges_map_to_pixel_edges() {

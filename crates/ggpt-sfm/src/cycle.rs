@@ -54,7 +54,11 @@ pub fn sample_zero_padded(img: &[f32], h: usize, w: usize, x: f32, y: f32) -> [f
 pub fn cycle_error_pair(ab: &[f32], ba: &[f32], h: usize, w: usize) -> Result<Vec<f32>> {
     let hw = h * w;
     if ab.len() != 2 * hw || ba.len() != 2 * hw {
-        return Err(SfmError::Shape(format!("cycle error: warps of {} / {} values for {h}x{w}", ab.len(), ba.len())));
+        return Err(SfmError::Shape(format!(
+            "cycle error: warps of {} / {} values for {h}x{w}",
+            ab.len(),
+            ba.len()
+        )));
     }
     Ok((0..hw)
         .map(|k| {
@@ -84,7 +88,12 @@ pub fn compute_cycle_errors(corr: &mut Correspondences) -> Result<()> {
             }
             let ab_start = 2 * ((t * n + s) * hw);
             let ba_start = 2 * ((s * n + t) * hw);
-            cycle_error_pair(&matches[ab_start..ab_start + 2 * hw], &matches[ba_start..ba_start + 2 * hw], h, w)
+            cycle_error_pair(
+                &matches[ab_start..ab_start + 2 * hw],
+                &matches[ba_start..ba_start + 2 * hw],
+                h,
+                w,
+            )
         })
         .collect();
     for (i, e) in errs.into_iter().enumerate() {
@@ -121,7 +130,10 @@ mod tests {
         }
         // the worked example: (3, 0) samples (1.25, 0.125)
         let q = sample_zero_padded(&ba, h, w, 3.5, 0.25);
-        assert!((q[0] - 1.25).abs() < 1e-6 && (q[1] - 0.125).abs() < 1e-6, "{q:?}");
+        assert!(
+            (q[0] - 1.25).abs() < 1e-6 && (q[1] - 0.125).abs() < 1e-6,
+            "{q:?}"
+        );
     }
 
     #[test]

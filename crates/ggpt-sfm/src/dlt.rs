@@ -75,21 +75,37 @@ impl DltOutput {
     /// Number of tracks passing each filter: (input, w, reprojection, angle, cheirality = kept).
     pub fn counts(&self) -> [usize; 5] {
         let total = self.tracks.len();
-        let w = self.tracks.iter().filter(|t| t.status != DltStatus::RejectW).count();
-        let r = self.tracks.iter().filter(|t| !matches!(t.status, DltStatus::RejectW | DltStatus::RejectReproj)).count();
+        let w = self
+            .tracks
+            .iter()
+            .filter(|t| t.status != DltStatus::RejectW)
+            .count();
+        let r = self
+            .tracks
+            .iter()
+            .filter(|t| !matches!(t.status, DltStatus::RejectW | DltStatus::RejectReproj))
+            .count();
         let a = self
             .tracks
             .iter()
             .filter(|t| matches!(t.status, DltStatus::Kept | DltStatus::RejectCheirality))
             .count();
-        let k = self.tracks.iter().filter(|t| t.status == DltStatus::Kept).count();
+        let k = self
+            .tracks
+            .iter()
+            .filter(|t| t.status == DltStatus::Kept)
+            .count();
         [total, w, r, a, k]
     }
 }
 
 /// Projection matrices `P_t = K_t [R_t | t_t]` of all views.
 pub fn projection_matrices(cams: &Cameras) -> Vec<Matrix3x4<f64>> {
-    cams.cam_from_world.iter().zip(&cams.intrinsics).map(|(e, k)| k * e).collect()
+    cams.cam_from_world
+        .iter()
+        .zip(&cams.intrinsics)
+        .map(|(e, k)| k * e)
+        .collect()
 }
 
 /// Upper triangle of the symmetric `4x4` normal matrix `M = Σ A_tᵀ A_t`, row-major:
@@ -102,8 +118,18 @@ type Proj = [[f64; 4]; 3];
 /// Accumulates `A_tᵀ A_t` of one observation `(u, v)` (ff pixels) into `m`.
 #[inline(always)]
 fn accumulate(m: &mut Sym4, p: &Proj, u: f64, v: f64) {
-    let r1 = [u * p[2][0] - p[0][0], u * p[2][1] - p[0][1], u * p[2][2] - p[0][2], u * p[2][3] - p[0][3]];
-    let r2 = [v * p[2][0] - p[1][0], v * p[2][1] - p[1][1], v * p[2][2] - p[1][2], v * p[2][3] - p[1][3]];
+    let r1 = [
+        u * p[2][0] - p[0][0],
+        u * p[2][1] - p[0][1],
+        u * p[2][2] - p[0][2],
+        u * p[2][3] - p[0][3],
+    ];
+    let r2 = [
+        v * p[2][0] - p[1][0],
+        v * p[2][1] - p[1][1],
+        v * p[2][2] - p[1][2],
+        v * p[2][3] - p[1][3],
+    ];
     let mut k = 0;
     for a in 0..4 {
         for b in a..4 {
@@ -222,7 +248,11 @@ fn inverse_iteration(m: &Sym4) -> Option<[f64; 4]> {
             return None;
         }
         // keep the sign of the previous iterate
-        let s = if y[0] * x[0] + y[1] * x[1] + y[2] * x[2] + y[3] * x[3] < 0.0 { -1.0 / ny } else { 1.0 / ny };
+        let s = if y[0] * x[0] + y[1] * x[1] + y[2] * x[2] + y[3] * x[3] < 0.0 {
+            -1.0 / ny
+        } else {
+            1.0 / ny
+        };
         let y = [y[0] * s, y[1] * s, y[2] * s, y[3] * s];
         let dv = [y[0] - x[0], y[1] - x[1], y[2] - x[2], y[3] - x[3]];
         let delta = norm(&dv);
@@ -258,7 +288,10 @@ pub fn triangulate_homogeneous(obs: &[(Matrix3x4<f64>, [f64; 2])]) -> Vector4<f6
 pub fn triangulate_ba_tracks(tracks: &BaTracks, cams: &Cameras) -> Result<Vec<Point3<f64>>> {
     let n = cams.cam_from_world.len();
     if cams.intrinsics.len() != n {
-        return Err(SfmError::Shape(format!("BA track triangulation: {n} extrinsics but {} intrinsics", cams.intrinsics.len())));
+        return Err(SfmError::Shape(format!(
+            "BA track triangulation: {n} extrinsics but {} intrinsics",
+            cams.intrinsics.len()
+        )));
     }
     let p = projection_matrices(cams);
     let mut per_point: Vec<Vec<(Matrix3x4<f64>, [f64; 2])>> = vec![Vec::new(); tracks.points.len()];
@@ -281,7 +314,11 @@ pub fn triangulate_ba_tracks(tracks: &BaTracks, cams: &Cameras) -> Result<Vec<Po
                 return nan;
             }
             let x = triangulate_homogeneous(obs);
-            if x[3].abs() > MIN_HOMOGENEOUS_W && x.iter().all(|v| v.is_finite()) { Point3::new(x[0] / x[3], x[1] / x[3], x[2] / x[3]) } else { nan }
+            if x[3].abs() > MIN_HOMOGENEOUS_W && x.iter().all(|v| v.is_finite()) {
+                Point3::new(x[0] / x[3], x[1] / x[3], x[2] / x[3])
+            } else {
+                nan
+            }
         })
         .collect())
 }
@@ -300,33 +337,54 @@ fn proj_rows(p: &Matrix3x4<f64>) -> Proj {
 /// * `corr`: correspondences (observation of `j` in view `t` = `matches[t, s, k]`);
 /// * `vis`: `[N, N hw]` DLT visibility after the epipolar filter (diagonal true);
 /// * `cams`: BA cameras (SfM frame).
-pub fn triangulate_tracks(corr: &Correspondences, vis: &[bool], cams: &Cameras, opts: &DltOptions) -> Result<DltOutput> {
+pub fn triangulate_tracks(
+    corr: &Correspondences,
+    vis: &[bool],
+    cams: &Cameras,
+    opts: &DltOptions,
+) -> Result<DltOutput> {
     corr.validate()?;
     let n = corr.dims.n;
     let hw = corr.dims.hw();
     let nt = n * hw;
     if vis.len() != n * nt {
-        return Err(SfmError::Shape(format!("DLT: visibility of {} entries, expected {}", vis.len(), n * nt)));
+        return Err(SfmError::Shape(format!(
+            "DLT: visibility of {} entries, expected {}",
+            vis.len(),
+            n * nt
+        )));
     }
     if cams.len() != n || cams.intrinsics.len() != n {
-        return Err(SfmError::Shape(format!("DLT: {} cameras for {n} views", cams.len())));
+        return Err(SfmError::Shape(format!(
+            "DLT: {} cameras for {n} views",
+            cams.len()
+        )));
     }
     if !cams.is_finite() {
         return Err(SfmError::Invalid("DLT: non-finite camera entry".into()));
     }
     let ps: Vec<Proj> = projection_matrices(cams).iter().map(proj_rows).collect();
-    let centers: Vec<[f64; 3]> = (0..n).map(|t| {
-        let c = cams.center(t).coords;
-        [c.x, c.y, c.z]
-    }).collect();
-    let rots: Vec<_> = (0..n).map(|t| (cams.rotation(t), cams.translation(t))).collect();
+    let centers: Vec<[f64; 3]> = (0..n)
+        .map(|t| {
+            let c = cams.center(t).coords;
+            [c.x, c.y, c.z]
+        })
+        .collect();
+    let rots: Vec<_> = (0..n)
+        .map(|t| (cams.rotation(t), cams.translation(t)))
+        .collect();
     let opts = *opts;
     let matches = &corr.matches;
     let tracks: Vec<DltTrack> = (0..nt)
         .into_par_iter()
         .with_min_len(4096)
         .map_init(
-            || (vec![(0usize, 0.0f64, 0.0f64); n], Vec::<[f64; 3]>::with_capacity(n)),
+            || {
+                (
+                    vec![(0usize, 0.0f64, 0.0f64); n],
+                    Vec::<[f64; 3]>::with_capacity(n),
+                )
+            },
             |(obs, dirs), j| {
                 // branch-free gather (visibility is unpredictable): write every view, advance
                 // the count only for visible ones
@@ -339,7 +397,15 @@ pub fn triangulate_tracks(corr: &Correspondences, vis: &[bool], cams: &Cameras, 
                 if cnt < 2 {
                     return None;
                 }
-                Some(solve_track(j, &obs[..cnt], dirs, &ps, &centers, &rots, &opts))
+                Some(solve_track(
+                    j,
+                    &obs[..cnt],
+                    dirs,
+                    &ps,
+                    &centers,
+                    &rots,
+                    &opts,
+                ))
             },
         )
         .filter_map(|t| t)
@@ -418,12 +484,23 @@ fn solve_track(
             }
         }
     }
-    tr.max_angle_deg = if nan { f64::NAN } else { min_cos.clamp(-ANGLE_COS_CLAMP, ANGLE_COS_CLAMP).acos().to_degrees() };
+    tr.max_angle_deg = if nan {
+        f64::NAN
+    } else {
+        min_cos
+            .clamp(-ANGLE_COS_CLAMP, ANGLE_COS_CLAMP)
+            .acos()
+            .to_degrees()
+    };
     if !(tr.max_angle_deg > opts.min_tri_angle_deg) {
         tr.status = DltStatus::RejectAngle;
         return tr;
     }
-    if opts.cheirality && obs.iter().any(|&(t, _, _)| (rots[t].0 * Vector3::from(x) + rots[t].1).z <= 0.0) {
+    if opts.cheirality
+        && obs
+            .iter()
+            .any(|&(t, _, _)| (rots[t].0 * Vector3::from(x) + rots[t].1).z <= 0.0)
+    {
         tr.status = DltStatus::RejectCheirality;
         return tr;
     }
@@ -442,7 +519,10 @@ mod tests {
         let k = Matrix3::new(500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0);
         let mut c1 = Matrix3x4::identity();
         c1[(0, 3)] = -1.0;
-        Cameras { cam_from_world: vec![Matrix3x4::identity(), c1], intrinsics: vec![k, k] }
+        Cameras {
+            cam_from_world: vec![Matrix3x4::identity(), c1],
+            intrinsics: vec![k, k],
+        }
     }
 
     fn two_view_corr(u0: [f32; 2], u1: [f32; 2]) -> (Correspondences, Vec<bool>) {
@@ -455,7 +535,12 @@ mod tests {
         // [t=1, s=0]
         matches[4] = u1[0];
         matches[5] = u1[1];
-        let corr = Correspondences { dims, matches, scores: vec![1.0; 4], cycle: vec![0.0; 4] };
+        let corr = Correspondences {
+            dims,
+            matches,
+            scores: vec![1.0; 4],
+            cycle: vec![0.0; 4],
+        };
         // vis[t, j]: j = 0 (view 0 track) visible in both; j = 1 (view 1 track) only in view 1.
         let vis = vec![true, false, true, true];
         (corr, vis)
@@ -478,17 +563,32 @@ mod tests {
             let noise = [0.0, 0.3, 3.0][(case / 16) % 3];
             let f = rng.random_range(100.0..1000.0);
             let k = Matrix3::new(f, 0.0, 259.0, 0.0, f, 195.5, 0.0, 0.0, 1.0);
-            let x = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), depth);
+            let x = Vector3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                depth,
+            );
             let mut m = [0.0; 10];
             for _ in 0..views {
-                let r = nalgebra::Rotation3::from_euler_angles(rng.random_range(-0.1..0.1), rng.random_range(-0.1..0.1), rng.random_range(-0.1..0.1));
-                let c = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)) * baseline;
+                let r = nalgebra::Rotation3::from_euler_angles(
+                    rng.random_range(-0.1..0.1),
+                    rng.random_range(-0.1..0.1),
+                    rng.random_range(-0.1..0.1),
+                );
+                let c = Vector3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                ) * baseline;
                 let mut e = Matrix3x4::zeros();
                 e.fixed_view_mut::<3, 3>(0, 0).copy_from(r.matrix());
                 e.set_column(3, &(-(r * c)));
                 let p = k * e;
                 let q = p * x.push(1.0);
-                let (u, v) = (q.x / q.z + noise * rng.random_range(-0.5..0.5), q.y / q.z + noise * rng.random_range(-0.5..0.5));
+                let (u, v) = (
+                    q.x / q.z + noise * rng.random_range(-0.5..0.5),
+                    q.y / q.z + noise * rng.random_range(-0.5..0.5),
+                );
                 accumulate(&mut m, &proj_rows(&p), u, v);
             }
             let dense = smallest_eigenvector_dense(&m);
@@ -501,20 +601,36 @@ mod tests {
             };
             let dot: f64 = (0..4).map(|i| dense[i] * fast[i]).sum();
             let sign = dot.signum();
-            let err = (0..4).map(|i| (dense[i] - sign * fast[i]).powi(2)).sum::<f64>().sqrt();
+            let err = (0..4)
+                .map(|i| (dense[i] - sign * fast[i]).powi(2))
+                .sum::<f64>()
+                .sqrt();
             // the eigenvector itself is only determined to ~eps ||M|| / gap: compare against the
             // dense solver's own sensitivity (eigenvalues from the dense decomposition)
-            let full = Matrix4::new(m[0], m[1], m[2], m[3], m[1], m[4], m[5], m[6], m[2], m[5], m[7], m[8], m[3], m[6], m[8], m[9]);
+            let full = Matrix4::new(
+                m[0], m[1], m[2], m[3], m[1], m[4], m[5], m[6], m[2], m[5], m[7], m[8], m[3], m[6],
+                m[8], m[9],
+            );
             let mut ev: Vec<f64> = full.symmetric_eigenvalues().iter().copied().collect();
             ev.sort_by(f64::total_cmp);
             let sens = f64::EPSILON * ev[3] / (ev[1] - ev[0]).max(f64::MIN_POSITIVE);
             worst = worst.max(err / (1e-12 + sens));
-            assert!(err < 1e-11 + 10.0 * sens, "case {case}: angle {err:e}, sensitivity {sens:e}, eigenvalues {ev:?}");
+            assert!(
+                err < 1e-11 + 10.0 * sens,
+                "case {case}: angle {err:e}, sensitivity {sens:e}, eigenvalues {ev:?}"
+            );
         }
-        eprintln!("inverse iteration: worst error / (1e-12 + sensitivity) = {worst:e}, {fallbacks} fallbacks of {cases}");
+        eprintln!(
+            "inverse iteration: worst error / (1e-12 + sensitivity) = {worst:e}, {fallbacks} fallbacks of {cases}"
+        );
         assert!(fallbacks < cases / 4, "{fallbacks} fallbacks");
         // degenerate matrices: all through the fallback or trivially exact, always unit norm
-        for m in [[0.0; 10], [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 1.0], [f64::NAN; 10], [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]] {
+        for m in [
+            [0.0; 10],
+            [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
+            [f64::NAN; 10],
+            [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0],
+        ] {
             let v = smallest_eigenvector(&m);
             let n: f64 = v.iter().map(|x| x * x).sum();
             assert!(m[0].is_nan() || (n - 1.0).abs() < 1e-12, "{m:?} -> {v:?}");
@@ -526,7 +642,11 @@ mod tests {
     fn spec_test_vector_exact() {
         let cams = spec_cams();
         let (corr, vis) = two_view_corr([340.0, 250.0], [240.0, 250.0]);
-        let opts = DltOptions { max_reproj_error: 4.0, min_tri_angle_deg: 3.0, cheirality: false };
+        let opts = DltOptions {
+            max_reproj_error: 4.0,
+            min_tri_angle_deg: 3.0,
+            cheirality: false,
+        };
         let out = triangulate_tracks(&corr, &vis, &cams, &opts).unwrap();
         assert_eq!(out.tracks.len(), 1);
         let t = out.tracks[0];
@@ -536,9 +656,22 @@ mod tests {
             assert!((t.point[a] - want[a]).abs() < 1e-9, "{:?}", t.point);
         }
         assert!(t.reproj_mean < 1e-6);
-        assert!((t.max_angle_deg - 11.3786).abs() < 1e-4, "{}", t.max_angle_deg);
+        assert!(
+            (t.max_angle_deg - 11.3786).abs() < 1e-4,
+            "{}",
+            t.max_angle_deg
+        );
         // angle threshold above the angle rejects
-        let o2 = triangulate_tracks(&corr, &vis, &cams, &DltOptions { min_tri_angle_deg: 12.0, ..opts }).unwrap();
+        let o2 = triangulate_tracks(
+            &corr,
+            &vis,
+            &cams,
+            &DltOptions {
+                min_tri_angle_deg: 12.0,
+                ..opts
+            },
+        )
+        .unwrap();
         assert_eq!(o2.tracks[0].status, DltStatus::RejectAngle);
         assert_eq!(o2.counts(), [1, 1, 1, 0, 0]);
     }
@@ -547,15 +680,30 @@ mod tests {
     fn spec_test_vector_noisy() {
         let cams = spec_cams();
         let (corr, vis) = two_view_corr([340.3, 249.8], [239.9, 250.4]);
-        let opts = DltOptions { max_reproj_error: 4.0, min_tri_angle_deg: 3.0, cheirality: false };
-        let t = triangulate_tracks(&corr, &vis, &cams, &opts).unwrap().tracks[0];
+        let opts = DltOptions {
+            max_reproj_error: 4.0,
+            min_tri_angle_deg: 3.0,
+            cheirality: false,
+        };
+        let t = triangulate_tracks(&corr, &vis, &cams, &opts)
+            .unwrap()
+            .tracks[0];
         let want = [0.202192, 0.100597, 4.980072];
         for a in 0..3 {
             assert!((t.point[a] - want[a]).abs() < 2e-6, "{:?}", t.point);
         }
         assert!((t.reproj_mean - 0.30).abs() < 0.01, "{}", t.reproj_mean);
         // reprojection threshold below the error rejects
-        let o = triangulate_tracks(&corr, &vis, &cams, &DltOptions { max_reproj_error: 0.2, ..opts }).unwrap();
+        let o = triangulate_tracks(
+            &corr,
+            &vis,
+            &cams,
+            &DltOptions {
+                max_reproj_error: 0.2,
+                ..opts
+            },
+        )
+        .unwrap();
         assert_eq!(o.tracks[0].status, DltStatus::RejectReproj);
     }
 
@@ -564,15 +712,33 @@ mod tests {
         let cams = spec_cams();
         // a point behind both cameras: X = (0.2, 0.1, -5) projects to (300, 230) and (400, 230)
         let (corr, vis) = two_view_corr([300.0, 230.0], [400.0, 230.0]);
-        let opts = DltOptions { max_reproj_error: 4.0, min_tri_angle_deg: 3.0, cheirality: false };
-        let t = triangulate_tracks(&corr, &vis, &cams, &opts).unwrap().tracks[0];
+        let opts = DltOptions {
+            max_reproj_error: 4.0,
+            min_tri_angle_deg: 3.0,
+            cheirality: false,
+        };
+        let t = triangulate_tracks(&corr, &vis, &cams, &opts)
+            .unwrap()
+            .tracks[0];
         assert_eq!(t.status, DltStatus::Kept);
         assert!(t.point[2] < 0.0);
-        let t = triangulate_tracks(&corr, &vis, &cams, &DltOptions { cheirality: true, ..opts }).unwrap().tracks[0];
+        let t = triangulate_tracks(
+            &corr,
+            &vis,
+            &cams,
+            &DltOptions {
+                cheirality: true,
+                ..opts
+            },
+        )
+        .unwrap()
+        .tracks[0];
         assert_eq!(t.status, DltStatus::RejectCheirality);
         // inconsistent rows (a 30 px vertical disagreement) fail the reprojection filter
         let (corr, vis) = two_view_corr([340.0, 250.0], [240.0, 280.0]);
-        let t = triangulate_tracks(&corr, &vis, &cams, &opts).unwrap().tracks[0];
+        let t = triangulate_tracks(&corr, &vis, &cams, &opts)
+            .unwrap()
+            .tracks[0];
         assert_eq!(t.status, DltStatus::RejectReproj);
     }
 
@@ -592,15 +758,29 @@ mod tests {
         let tracks = BaTracks {
             track_ids: vec![0, 1, 2],
             points: vec![Point3::origin(); 3],
-            observations: vec![obs(0, 0, uv(0)), obs(0, 1, uv(0)), obs(0, 2, [320.0, 240.0]), obs(1, 0, uv(1)), obs(1, 2, [320.0, 240.0])],
+            observations: vec![
+                obs(0, 0, uv(0)),
+                obs(0, 1, uv(0)),
+                obs(0, 2, [320.0, 240.0]),
+                obs(1, 0, uv(1)),
+                obs(1, 2, [320.0, 240.0]),
+            ],
             excluded: 0,
         };
         let pts = triangulate_ba_tracks(&tracks, &cams).unwrap();
         assert_eq!(pts.len(), 3);
         assert!((pts[0].coords - x.xyz()).norm() < 1e-9, "{:?}", pts[0]);
-        assert!(pts[1].iter().all(|c| c.is_nan()), "one observation: {:?}", pts[1]);
+        assert!(
+            pts[1].iter().all(|c| c.is_nan()),
+            "one observation: {:?}",
+            pts[1]
+        );
         // rays (0,0,1) from (0,0,0) and (1,0,0) from camera 1's centre (1,0,0): parallel -> w = 0
-        assert!(pts[2].iter().all(|c| c.is_nan()), "parallel rays: {:?}", pts[2]);
+        assert!(
+            pts[2].iter().all(|c| c.is_nan()),
+            "parallel rays: {:?}",
+            pts[2]
+        );
         let mut bad = tracks.clone();
         bad.observations.push(obs(2, 0, uv(0)));
         let e = triangulate_ba_tracks(&bad, &cams).unwrap_err();

@@ -21,14 +21,22 @@ pub fn mark_invalid(corr: &mut Correspondences) {
 /// correspondences and the winning matcher index per `(t, s, k)` entry (target-major).
 /// Ties go to the matcher listed first. Invalid matches of every input are marked first.
 pub fn ensemble(sets: &[Correspondences]) -> Result<(Correspondences, Vec<u8>)> {
-    let first = sets.first().ok_or_else(|| SfmError::Invalid("ensemble: no matcher given".into()))?;
+    let first = sets
+        .first()
+        .ok_or_else(|| SfmError::Invalid("ensemble: no matcher given".into()))?;
     if sets.len() > u8::MAX as usize {
-        return Err(SfmError::Invalid(format!("ensemble: {} matchers (at most 255)", sets.len())));
+        return Err(SfmError::Invalid(format!(
+            "ensemble: {} matchers (at most 255)",
+            sets.len()
+        )));
     }
     for (i, s) in sets.iter().enumerate() {
         s.validate()?;
         if s.dims != first.dims {
-            return Err(SfmError::Shape(format!("ensemble: matcher {i} has dims {:?}, matcher 0 {:?}", s.dims, first.dims)));
+            return Err(SfmError::Shape(format!(
+                "ensemble: matcher {i} has dims {:?}, matcher 0 {:?}",
+                s.dims, first.dims
+            )));
         }
     }
     let mut marked: Vec<Correspondences> = sets.to_vec();
@@ -59,13 +67,21 @@ mod tests {
 
     fn set(score: f32, cycle: f32, x: f32) -> Correspondences {
         let dims = Dims { n: 1, h: 1, w: 1 };
-        Correspondences { dims, matches: vec![x, 0.0], scores: vec![score], cycle: vec![cycle] }
+        Correspondences {
+            dims,
+            matches: vec![x, 0.0],
+            scores: vec![score],
+            cycle: vec![cycle],
+        }
     }
 
     #[test]
     fn smallest_cycle_wins_ties_first() {
         let (o, s) = ensemble(&[set(0.5, 1.0, 1.0), set(0.6, 0.5, 2.0)]).unwrap();
-        assert_eq!((o.scores[0], o.cycle[0], o.matches[0], s[0]), (0.6, 0.5, 2.0, 1));
+        assert_eq!(
+            (o.scores[0], o.cycle[0], o.matches[0], s[0]),
+            (0.6, 0.5, 2.0, 1)
+        );
         let (o, s) = ensemble(&[set(0.5, 1.0, 1.0), set(0.6, 1.0, 2.0)]).unwrap();
         assert_eq!((o.matches[0], s[0]), (1.0, 0));
     }

@@ -18,8 +18,15 @@ pub const EPIPOLAR_EPS: f64 = 1e-10;
 /// The fundamental matrix mapping pixels of view `i` (ff pixels, pixel-centre convention) to
 /// epipolar lines in view `j`: `q~^T F p~ = 0`. Cameras are `cam_from_world` (OpenCV).
 pub fn fundamental(cams: &Cameras, i: usize, j: usize) -> Result<Matrix3<f64>> {
-    if i >= cams.len() || j >= cams.len() || i >= cams.intrinsics.len() || j >= cams.intrinsics.len() {
-        return Err(SfmError::Shape(format!("fundamental: views {i}, {j} of {} cameras", cams.len())));
+    if i >= cams.len()
+        || j >= cams.len()
+        || i >= cams.intrinsics.len()
+        || j >= cams.intrinsics.len()
+    {
+        return Err(SfmError::Shape(format!(
+            "fundamental: views {i}, {j} of {} cameras",
+            cams.len()
+        )));
     }
     let (ri, ti) = (cams.rotation(i), cams.translation(i));
     let (rj, tj) = (cams.rotation(j), cams.translation(j));
@@ -49,10 +56,18 @@ pub fn distances(f: &Matrix3<f64>, p: [f64; 2], q: [f64; 2]) -> (f64, f64) {
 }
 
 /// Distances of every pixel `k` of source view `i` to its match in view `j`: `[hw]` pairs.
-pub fn pair_distances(corr: &Correspondences, cams: &Cameras, i: usize, j: usize) -> Result<Vec<(f64, f64)>> {
+pub fn pair_distances(
+    corr: &Correspondences,
+    cams: &Cameras,
+    i: usize,
+    j: usize,
+) -> Result<Vec<(f64, f64)>> {
     corr.validate()?;
     if i >= corr.dims.n || j >= corr.dims.n {
-        return Err(SfmError::Shape(format!("epipolar: views {i}, {j} of {} views", corr.dims.n)));
+        return Err(SfmError::Shape(format!(
+            "epipolar: views {i}, {j} of {} views",
+            corr.dims.n
+        )));
     }
     let f = fundamental(cams, i, j)?;
     let w = corr.dims.w;
@@ -60,7 +75,11 @@ pub fn pair_distances(corr: &Correspondences, cams: &Cameras, i: usize, j: usize
     Ok((0..corr.dims.hw())
         .map(|k| {
             let m = 2 * (base + k);
-            distances(&f, [(k % w) as f64, (k / w) as f64], [corr.matches[m] as f64, corr.matches[m + 1] as f64])
+            distances(
+                &f,
+                [(k % w) as f64, (k / w) as f64],
+                [corr.matches[m] as f64, corr.matches[m + 1] as f64],
+            )
         })
         .collect())
 }
@@ -68,18 +87,32 @@ pub fn pair_distances(corr: &Correspondences, cams: &Cameras, i: usize, j: usize
 /// Applies the epipolar test to the DLT mask `m_dlt` (`[t, s, k]` like `corr`):
 /// `m_dlt[j, i, k] &= d_a < τ && d_b < τ` for `j != i`; the diagonal is kept.
 /// Returns the number of mask entries switched off.
-pub fn epipolar_filter(corr: &Correspondences, m_dlt: &mut [bool], cams: &Cameras, max_error: f64) -> Result<usize> {
+pub fn epipolar_filter(
+    corr: &Correspondences,
+    m_dlt: &mut [bool],
+    cams: &Cameras,
+    max_error: f64,
+) -> Result<usize> {
     corr.validate()?;
     let n = corr.dims.n;
     let hw = corr.dims.hw();
     if m_dlt.len() != corr.entries() {
-        return Err(SfmError::Shape(format!("epipolar: DLT mask of {} entries, expected {}", m_dlt.len(), corr.entries())));
+        return Err(SfmError::Shape(format!(
+            "epipolar: DLT mask of {} entries, expected {}",
+            m_dlt.len(),
+            corr.entries()
+        )));
     }
     if cams.len() != n || cams.intrinsics.len() != n {
-        return Err(SfmError::Shape(format!("epipolar: {} cameras for {n} views", cams.len())));
+        return Err(SfmError::Shape(format!(
+            "epipolar: {} cameras for {n} views",
+            cams.len()
+        )));
     }
     if !cams.is_finite() {
-        return Err(SfmError::Invalid("epipolar: non-finite camera entry".into()));
+        return Err(SfmError::Invalid(
+            "epipolar: non-finite camera entry".into(),
+        ));
     }
     let thr = max_error as f32;
     let removed: Vec<usize> = m_dlt
@@ -116,7 +149,10 @@ mod tests {
         let c0 = Matrix3x4::identity();
         let mut c1 = Matrix3x4::identity();
         c1[(0, 3)] = -1.0;
-        Cameras { cam_from_world: vec![c0, c1], intrinsics: vec![k, k] }
+        Cameras {
+            cam_from_world: vec![c0, c1],
+            intrinsics: vec![k, k],
+        }
     }
 
     /// Test vector of `sfm.md` §8.
@@ -136,11 +172,19 @@ mod tests {
                 }
             }
         }
-        let mut corr = Correspondences { dims, matches, scores: vec![1.0; e], cycle: vec![0.0; e] };
+        let mut corr = Correspondences {
+            dims,
+            matches,
+            scores: vec![1.0; e],
+            cycle: vec![0.0; e],
+        };
         corr.apply_diagonal();
         let d = pair_distances(&corr, &cams, 0, 1).unwrap();
         for (k, (da, db)) in d.iter().enumerate() {
-            assert!((da - 0.7).abs() < 1e-6 && (db - 0.7).abs() < 1e-6, "pixel {k}: {da} {db}");
+            assert!(
+                (da - 0.7).abs() < 1e-6 && (db - 0.7).abs() < 1e-6,
+                "pixel {k}: {da} {db}"
+            );
         }
         let mut m = vec![true; e];
         assert_eq!(epipolar_filter(&corr, &mut m, &cams, 0.71).unwrap(), 0);
@@ -161,7 +205,12 @@ mod tests {
         assert!(da < 1e-6 && db < 1e-6);
         cams.cam_from_world[1][(0, 0)] = f64::NAN;
         let dims = Dims { n: 2, h: 1, w: 1 };
-        let corr = Correspondences { dims, matches: vec![0.0; 8], scores: vec![1.0; 4], cycle: vec![0.0; 4] };
+        let corr = Correspondences {
+            dims,
+            matches: vec![0.0; 8],
+            scores: vec![1.0; 4],
+            cycle: vec![0.0; 4],
+        };
         let mut m = vec![true; 4];
         assert!(epipolar_filter(&corr, &mut m, &cams, 4.0).is_err());
     }

@@ -41,8 +41,16 @@ pub enum SfmError {
 
 impl SfmError {
     /// Shorthand for [`SfmError::Format`].
-    pub fn format(path: impl Into<PathBuf>, key: impl Into<String>, message: impl Into<String>) -> Self {
-        SfmError::Format { path: path.into(), key: key.into(), message: message.into() }
+    pub fn format(
+        path: impl Into<PathBuf>,
+        key: impl Into<String>,
+        message: impl Into<String>,
+    ) -> Self {
+        SfmError::Format {
+            path: path.into(),
+            key: key.into(),
+            message: message.into(),
+        }
     }
 }
 

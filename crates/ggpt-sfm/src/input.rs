@@ -12,6 +12,7 @@
 
 use std::path::Path;
 
+use ggpt_core::io::st::StFile;
 use ggpt_core::{Cameras, Dims, FeedForward};
 use nalgebra::{Matrix3, Matrix3x4};
 
@@ -19,7 +20,6 @@ use crate::convert::{generic_to_ff, roma_to_ff, ufm_to_ff};
 use crate::cycle::compute_cycle_errors;
 use crate::error::{Result, SfmError};
 use crate::matches::Correspondences;
-use crate::st::StFile;
 
 /// Feed-forward input of the SfM stage.
 #[derive(Debug, Clone, PartialEq)]
@@ -49,13 +49,25 @@ pub struct MatchesInput {
 }
 
 fn stem(path: &Path) -> String {
-    path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "scene".into())
+    path.file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "scene".into())
 }
 
 /// Cameras from flat f32 `[N, 3, 4]` (or `[N, 4, 4]`) extrinsics and `[N, 3, 3]` intrinsics.
-pub fn cameras_from_flat(path: &Path, n: usize, ext: &[f32], ext_rows: usize, intr: &[f32]) -> Result<Cameras> {
+pub fn cameras_from_flat(
+    path: &Path,
+    n: usize,
+    ext: &[f32],
+    ext_rows: usize,
+    intr: &[f32],
+) -> Result<Cameras> {
     if ext.len() != n * ext_rows * 4 || intr.len() != n * 9 || !(ext_rows == 3 || ext_rows == 4) {
-        return Err(SfmError::format(path, "extrinsics/intrinsics", format!("{} / {} values for {n} views", ext.len(), intr.len())));
+        return Err(SfmError::format(
+            path,
+            "extrinsics/intrinsics",
+            format!("{} / {} values for {n} views", ext.len(), intr.len()),
+        ));
     }
     let mut cam_from_world = Vec::with_capacity(n);
     let mut intrinsics = Vec::with_capacity(n);
@@ -65,23 +77,39 @@ pub fn cameras_from_flat(path: &Path, n: usize, ext: &[f32], ext_rows: usize, in
         let k = &intr[v * 9..];
         intrinsics.push(Matrix3::from_fn(|r, c| k[r * 3 + c] as f64));
     }
-    Ok(Cameras { cam_from_world, intrinsics })
+    Ok(Cameras {
+        cam_from_world,
+        intrinsics,
+    })
 }
 
 /// Reads the feed-forward input from `path` (see the module doc for the accepted forms).
 pub fn read_ff(path: &Path) -> Result<FfInput> {
     if path.is_dir() {
         let scene = ggpt_core::io::scene_dir::read_scene(path)?;
-        let ff = scene
-            .ff
-            .ok_or_else(|| SfmError::format(path, "ff", "the scene directory has no feed-forward outputs"))?;
-        return Ok(FfInput { name: scene.name, dims: scene.dims, images: scene.images, ff, image_names: Vec::new() });
+        let ff = scene.ff.ok_or_else(|| {
+            SfmError::format(
+                path,
+                "ff",
+                "the scene directory has no feed-forward outputs",
+            )
+        })?;
+        return Ok(FfInput {
+            name: scene.name,
+            dims: scene.dims,
+            images: scene.images,
+            ff,
+            image_names: Vec::new(),
+        });
     }
     // safetensors: 8-byte header length, then the JSON header starting with '{'
     let is_st = {
         use std::io::Read;
         let mut head = [0u8; 9];
-        let mut f = std::fs::File::open(path).map_err(|e| SfmError::Io { path: path.to_path_buf(), source: e })?;
+        let mut f = std::fs::File::open(path).map_err(|e| SfmError::Io {
+            path: path.to_path_buf(),
+            source: e,
+        })?;
         f.read_exact(&mut head).is_ok() && head[8] == b'{'
     };
     if !is_st {
@@ -89,33 +117,69 @@ pub fn read_ff(path: &Path) -> Result<FfInput> {
         let n = b.dims.n;
         let rows = if b.extrinsics.len() == n * 16 { 4 } else { 3 };
         let cameras = cameras_from_flat(path, n, &b.extrinsics, rows, &b.intrinsics)?;
-        let ff = FeedForward { points: b.points, conf: b.points_conf, cameras };
-        return Ok(FfInput { name: stem(path), dims: b.dims, images: b.images_ff, ff, image_names: Vec::new() });
+        let ff = FeedForward {
+            points: b.points,
+            conf: b.points_conf,
+            cameras,
+        };
+        return Ok(FfInput {
+            name: stem(path),
+            dims: b.dims,
+            images: b.images_ff,
+            ff,
+            image_names: Vec::new(),
+        });
     }
     let f = StFile::open(path)?;
     let prefix = if f.has("ff/points") { "ff/" } else { "" };
     let key = |k: &str| format!("{prefix}{k}");
-    let pts = f.f32(&key("points"))?;
+    let pts = f.f32_tensor(&key("points"))?;
     let (n, h, w) = match pts.shape.as_slice() {
         [n, h, w, 3] => (*n, *h, *w),
-        s => return Err(SfmError::format(path, key("points"), format!("shape {s:?} is not [N, h, w, 3]"))),
+        s => {
+            return Err(SfmError::format(
+                path,
+                key("points"),
+                format!("shape {s:?} is not [N, h, w, 3]"),
+            ));
+        }
     };
     let dims = Dims { n, h, w };
-    let images = f.f32(&key("images_ff"))?;
+    let images = f.f32_tensor(&key("images_ff"))?;
     f.expect_shape(&key("images_ff"), &images, &[n, h, w, 3])?;
-    let conf_key = if f.has(&key("points_conf")) { key("points_conf") } else { key("conf") };
-    let conf = f.f32(&conf_key)?;
+    let conf_key = if f.has(&key("points_conf")) {
+        key("points_conf")
+    } else {
+        key("conf")
+    };
+    let conf = f.f32_tensor(&conf_key)?;
     f.expect_shape(&conf_key, &conf, &[n, h, w])?;
-    let ext = f.f32(&key("extrinsics"))?;
+    let ext = f.f32_tensor(&key("extrinsics"))?;
     let rows = match ext.shape.as_slice() {
         [m, r, 4] if *m == n && (*r == 3 || *r == 4) => *r,
-        s => return Err(SfmError::format(path, key("extrinsics"), format!("shape {s:?} is not [N={n}, 3|4, 4]"))),
+        s => {
+            return Err(SfmError::format(
+                path,
+                key("extrinsics"),
+                format!("shape {s:?} is not [N={n}, 3|4, 4]"),
+            ));
+        }
     };
-    let intr = f.f32(&key("intrinsics"))?;
+    let intr = f.f32_tensor(&key("intrinsics"))?;
     f.expect_shape(&key("intrinsics"), &intr, &[n, 3, 3])?;
     let cameras = cameras_from_flat(path, n, &ext.data, rows, &intr.data)?;
-    let ff = FeedForward { points: pts.data, conf: conf.data, cameras };
-    Ok(FfInput { name: stem(path), dims, images: images.data, ff, image_names: Vec::new() })
+    let ff = FeedForward {
+        points: pts.data,
+        conf: conf.data,
+        cameras,
+    };
+    Ok(FfInput {
+        name: stem(path),
+        dims,
+        images: images.data,
+        ff,
+        image_names: Vec::new(),
+    })
 }
 
 /// Reads the matches from `path` for a scene of dims `dims` (see the module doc).
@@ -144,7 +208,10 @@ pub fn read_matches(path: &Path, dims: Dims) -> Result<MatchesInput> {
             return Err(SfmError::format(
                 path,
                 "pred_matches",
-                format!("matches are for N={} h={} w={}, the images are N={} h={} w={}", mf.n, mf.h, mf.w, dims.n, dims.h, dims.w),
+                format!(
+                    "matches are for N={} h={} w={}, the images are N={} h={} w={}",
+                    mf.n, mf.h, mf.w, dims.n, dims.h, dims.w
+                ),
             ));
         }
         return from_match_sets(path, std::slice::from_ref(&mf.set), dims);
@@ -165,8 +232,19 @@ pub fn read_inputs(ff: &Path, matches: &Path) -> Result<(FfInput, MatchesInput)>
     if same_dir {
         let scene = ggpt_core::io::scene_dir::read_scene(ff)?;
         let m = from_match_sets(matches, &scene.matches, scene.dims)?;
-        let ffo = scene.ff.ok_or_else(|| SfmError::format(ff, "ff", "the scene directory has no feed-forward outputs"))?;
-        return Ok((FfInput { name: scene.name, dims: scene.dims, images: scene.images, ff: ffo, image_names: Vec::new() }, m));
+        let ffo = scene.ff.ok_or_else(|| {
+            SfmError::format(ff, "ff", "the scene directory has no feed-forward outputs")
+        })?;
+        return Ok((
+            FfInput {
+                name: scene.name,
+                dims: scene.dims,
+                images: scene.images,
+                ff: ffo,
+                image_names: Vec::new(),
+            },
+            m,
+        ));
     }
     let f = read_ff(ff)?;
     let m = read_matches(matches, f.dims)?;
@@ -177,7 +255,11 @@ fn from_match_sets(path: &Path, sets: &[ggpt_core::MatchSet], dims: Dims) -> Res
     if sets.is_empty() {
         return Err(SfmError::format(path, "matches", "no matches found"));
     }
-    let mut out = MatchesInput { names: Vec::new(), sets: Vec::new(), rank_scores: None };
+    let mut out = MatchesInput {
+        names: Vec::new(),
+        sets: Vec::new(),
+        rank_scores: None,
+    };
     for s in sets {
         out.names.push(s.matcher.clone());
         out.sets.push(Correspondences::from_match_set(s, dims)?);
@@ -196,23 +278,48 @@ fn from_match_sets(path: &Path, sets: &[ggpt_core::MatchSet], dims: Dims) -> Res
 /// coordinates); `i = 0, 1, ...` consecutive; optional `sp_scores` / `rank_scores` `[N, h*w]`.
 pub fn read_raw_matches(f: &StFile, dims: Dims) -> Result<MatchesInput> {
     let path = f.path().to_path_buf();
-    let prefix = if f.names().iter().any(|k| k.starts_with("match/")) { "match/" } else { "" };
+    let prefix = if f.keys().iter().any(|k| k.starts_with("match/")) {
+        "match/"
+    } else {
+        ""
+    };
     let (n, h, w) = (dims.n, dims.h, dims.w);
     let hw = h * w;
-    let mut out = MatchesInput { names: Vec::new(), sets: Vec::new(), rank_scores: None };
+    let mut out = MatchesInput {
+        names: Vec::new(),
+        sets: Vec::new(),
+        rank_scores: None,
+    };
     for i in 0.. {
         let k = |s: &str| format!("{prefix}m{i}_{s}");
-        let mut corr = Correspondences { dims, matches: vec![0.0; 2 * n * n * hw], scores: vec![0.0; n * n * hw], cycle: vec![0.0; n * n * hw] };
+        let mut corr = Correspondences {
+            dims,
+            matches: vec![0.0; 2 * n * n * hw],
+            scores: vec![0.0; n * n * hw],
+            cycle: vec![0.0; n * n * hw],
+        };
         let name;
         if f.has(&k("warp")) || f.has(&k("pixwarp")) {
             let generic = !f.has(&k("warp"));
-            let (wk, sk) = if generic { (k("pixwarp"), k("score")) } else { (k("warp"), k("overlap")) };
-            let warp = f.f32(&wk)?;
+            let (wk, sk) = if generic {
+                (k("pixwarp"), k("score"))
+            } else {
+                (k("warp"), k("overlap"))
+            };
+            let warp = f.f32_tensor(&wk)?;
             let (hm, wm) = match warp.shape.as_slice() {
                 [a, b, hm, wm, 2] if *a == n && *b == n => (*hm, *wm),
-                s => return Err(SfmError::format(&path, &wk, format!("shape {s:?} is not [N={n}, N={n}, Hm, Wm, 2] (the images have N={n})"))),
+                s => {
+                    return Err(SfmError::format(
+                        &path,
+                        &wk,
+                        format!(
+                            "shape {s:?} is not [N={n}, N={n}, Hm, Wm, 2] (the images have N={n})"
+                        ),
+                    ));
+                }
             };
-            let sc = f.f32(&sk)?;
+            let sc = f.f32_tensor(&sk)?;
             f.expect_shape(&sk, &sc, &[n, n, hm, wm])?;
             for s in 0..n {
                 for t in 0..n {
@@ -222,18 +329,34 @@ pub fn read_raw_matches(f: &StFile, dims: Dims) -> Result<MatchesInput> {
                     let p = s * n + t;
                     let wslice = &warp.data[p * hm * wm * 2..(p + 1) * hm * wm * 2];
                     let sslice = &sc.data[p * hm * wm..(p + 1) * hm * wm];
-                    let (m, score) = if generic { generic_to_ff(wslice, sslice, hm, wm, h, w)? } else { roma_to_ff(wslice, sslice, hm, wm, h, w)? };
+                    let (m, score) = if generic {
+                        generic_to_ff(wslice, sslice, hm, wm, h, w)?
+                    } else {
+                        roma_to_ff(wslice, sslice, hm, wm, h, w)?
+                    };
                     put_pair(&mut corr, t, s, &m, &score);
                 }
             }
-            name = if generic { format!("generic-{i}") } else { format!("roma-{i}") };
+            name = if generic {
+                format!("generic-{i}")
+            } else {
+                format!("roma-{i}")
+            };
         } else if f.has(&k("flow")) {
-            let flow = f.f32(&k("flow"))?;
+            let flow = f.f32_tensor(&k("flow"))?;
             let (ho, wo) = match flow.shape.as_slice() {
                 [a, b, 2, ho, wo] if *a == n && *b == n => (*ho, *wo),
-                s => return Err(SfmError::format(&path, k("flow"), format!("shape {s:?} is not [N={n}, N={n}, 2, Ho, Wo] (the images have N={n})"))),
+                s => {
+                    return Err(SfmError::format(
+                        &path,
+                        k("flow"),
+                        format!(
+                            "shape {s:?} is not [N={n}, N={n}, 2, Ho, Wo] (the images have N={n})"
+                        ),
+                    ));
+                }
             };
-            let cov = f.f32(&k("covisibility"))?;
+            let cov = f.f32_tensor(&k("covisibility"))?;
             f.expect_shape(&k("covisibility"), &cov, &[n, n, ho, wo])?;
             for s in 0..n {
                 for t in 0..n {
@@ -241,7 +364,14 @@ pub fn read_raw_matches(f: &StFile, dims: Dims) -> Result<MatchesInput> {
                         continue;
                     }
                     let p = s * n + t;
-                    let (m, score) = ufm_to_ff(&flow.data[p * 2 * ho * wo..(p + 1) * 2 * ho * wo], &cov.data[p * ho * wo..(p + 1) * ho * wo], ho, wo, h, w)?;
+                    let (m, score) = ufm_to_ff(
+                        &flow.data[p * 2 * ho * wo..(p + 1) * 2 * ho * wo],
+                        &cov.data[p * ho * wo..(p + 1) * ho * wo],
+                        ho,
+                        wo,
+                        h,
+                        w,
+                    )?;
                     put_pair(&mut corr, t, s, &m, &score);
                 }
             }
@@ -257,12 +387,16 @@ pub fn read_raw_matches(f: &StFile, dims: Dims) -> Result<MatchesInput> {
         out.sets.push(corr);
     }
     if out.sets.is_empty() {
-        return Err(SfmError::format(&path, format!("{prefix}m0_*"), "no matcher output found (expected m0_warp/m0_overlap, m0_flow/m0_covisibility or m0_pixwarp/m0_score, or pred_matches)"));
+        return Err(SfmError::format(
+            &path,
+            format!("{prefix}m0_*"),
+            "no matcher output found (expected m0_warp/m0_overlap, m0_flow/m0_covisibility or m0_pixwarp/m0_score, or pred_matches)",
+        ));
     }
     for rk in ["sp_scores", "rank_scores"] {
         let key = format!("{prefix}{rk}");
         if f.has(&key) {
-            let r = f.f32(&key)?;
+            let r = f.f32_tensor(&key)?;
             f.expect_shape(&key, &r, &[n, hw])?;
             out.rank_scores = Some(r.data);
             break;
@@ -281,29 +415,45 @@ fn put_pair(corr: &mut Correspondences, t: usize, s: usize, m: &[f32], score: &[
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::st::{OutTensor, serialize};
+    use ggpt_core::io::st::StWriter;
 
-    fn write(dir: &Path, name: &str, t: Vec<OutTensor>) -> std::path::PathBuf {
+    fn write(dir: &Path, name: &str, t: StWriter) -> std::path::PathBuf {
         let p = dir.join(name);
-        std::fs::write(&p, serialize(&t, None).unwrap()).unwrap();
+        std::fs::write(&p, t.finish(&p, None).unwrap()).unwrap();
         p
     }
 
-    fn ff_tensors(n: usize, h: usize, w: usize, img_h: usize) -> Vec<OutTensor> {
+    fn ff_tensors(n: usize, h: usize, w: usize, img_h: usize) -> StWriter {
         let px = n * h * w;
         let mut ext = Vec::new();
         let mut k = Vec::new();
         for _ in 0..n {
-            ext.extend([1.0f32, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
-            k.extend([10.0f32, 0.0, (w as f32 - 1.0) / 2.0, 0.0, 10.0, (h as f32 - 1.0) / 2.0, 0.0, 0.0, 1.0]);
+            ext.extend([
+                1.0f32, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0,
+            ]);
+            k.extend([
+                10.0f32,
+                0.0,
+                (w as f32 - 1.0) / 2.0,
+                0.0,
+                10.0,
+                (h as f32 - 1.0) / 2.0,
+                0.0,
+                0.0,
+                1.0,
+            ]);
         }
-        vec![
-            OutTensor::f32("ff/points", vec![n, h, w, 3], &vec![1.0; 3 * px]),
-            OutTensor::f32("ff/images_ff", vec![n, img_h, w, 3], &vec![0.5; 3 * n * img_h * w]),
-            OutTensor::f32("ff/points_conf", vec![n, h, w], &vec![1.0; px]),
-            OutTensor::f32("ff/extrinsics", vec![n, 3, 4], &ext),
-            OutTensor::f32("ff/intrinsics", vec![n, 3, 3], &k),
-        ]
+        let mut t = StWriter::new();
+        t.f32("ff/points", &[n, h, w, 3], &vec![1.0; 3 * px]);
+        t.f32(
+            "ff/images_ff",
+            &[n, img_h, w, 3],
+            &vec![0.5; 3 * n * img_h * w],
+        );
+        t.f32("ff/points_conf", &[n, h, w], &vec![1.0; px]);
+        t.f32("ff/extrinsics", &[n, 3, 4], &ext);
+        t.f32("ff/intrinsics", &[n, 3, 3], &k);
+        t
     }
 
     #[test]
@@ -315,7 +465,10 @@ mod tests {
         assert_eq!(ff.ff.cameras.intrinsics[1][(0, 2)], 1.5);
         let p = write(dir.path(), "bad.safetensors", ff_tensors(2, 3, 4, 5));
         let e = read_ff(&p).unwrap_err().to_string();
-        assert!(e.contains("bad.safetensors") && e.contains("ff/images_ff"), "{e}");
+        assert!(
+            e.contains("bad.safetensors") && e.contains("ff/images_ff"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -326,28 +479,39 @@ mod tests {
         // UFM-style flow +1 px in x everywhere, covisibility 0.9
         let mut flow = vec![0f32; n * n * 2 * hw];
         for p in 0..n * n {
-            flow[p * 2 * hw..p * 2 * hw + hw].iter_mut().for_each(|v| *v = 1.0);
+            flow[p * 2 * hw..p * 2 * hw + hw]
+                .iter_mut()
+                .for_each(|v| *v = 1.0);
         }
-        let p = write(
-            dir.path(),
-            "m.safetensors",
-            vec![
-                OutTensor::f32("match/m0_flow", vec![n, n, 2, h, w], &flow),
-                OutTensor::f32("match/m0_covisibility", vec![n, n, h, w], &vec![0.9; n * n * hw]),
-            ],
+        let mut t = StWriter::new();
+        t.f32("match/m0_flow", &[n, n, 2, h, w], &flow);
+        t.f32(
+            "match/m0_covisibility",
+            &[n, n, h, w],
+            &vec![0.9; n * n * hw],
         );
+        let p = write(dir.path(), "m.safetensors", t);
         let m = read_matches(&p, Dims { n, h, w }).unwrap();
         assert_eq!(m.sets.len(), 1);
         let c = &m.sets[0];
         let i = c.idx(1, 0, 0);
-        assert_eq!((c.matches[2 * i], c.matches[2 * i + 1], c.scores[i]), (1.0, 0.0, 0.9));
+        assert_eq!(
+            (c.matches[2 * i], c.matches[2 * i + 1], c.scores[i]),
+            (1.0, 0.0, 0.9)
+        );
         let j = c.idx(1, 0, 3); // x = 3 -> 4 leaves the image: score 0
         assert_eq!(c.scores[j], 0.0);
         assert!(m.rank_scores.is_none());
-        let e = read_matches(&p, Dims { n: 3, h, w }).unwrap_err().to_string();
+        let e = read_matches(&p, Dims { n: 3, h, w })
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("m0_flow") && e.contains("N=3"), "{e}");
-        let empty = write(dir.path(), "e.safetensors", vec![OutTensor::f32("x", vec![1], &[0.0])]);
-        let e = read_matches(&empty, Dims { n, h, w }).unwrap_err().to_string();
+        let mut t = StWriter::new();
+        t.f32("x", &[1], &[0.0]);
+        let empty = write(dir.path(), "e.safetensors", t);
+        let e = read_matches(&empty, Dims { n, h, w })
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("no matcher output"), "{e}");
     }
 }

@@ -27,7 +27,6 @@ pub mod matches;
 pub mod output;
 pub mod pipeline;
 pub mod scatter;
-pub mod st;
 pub mod tracks;
 
 pub use error::{Result, SfmError};

@@ -1,6 +1,6 @@
 //! `ggpt-sfm`: the lightweight SfM stage of GGPT as a command-line tool (see `docs/sfm.md`).
 //!
-//! `ggpt-sfm run --ff FILE --matches FILE --preset benchmark --out DIR` writes
+//! `ggpt-sfm run --ff FILE --matches FILE --sfm-preset benchmark --out DIR` writes
 //! `DIR/sfm_dlt_outputs.safetensors`, the COLMAP model `DIR/sparse/0/` (BA cameras, images and
 //! BA points; `--colmap-points dlt|none` for the DLT points or none) and `DIR/summary.json`.
 
@@ -9,17 +9,21 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
+use ggpt_cli::{ProgressArgs, SfmPresetArg, StageBars};
 use ggpt_core::Cameras;
+use ggpt_core::io::st::StFile;
 use ggpt_sfm::ba::{BaOptions, CameraModel, LossFunction};
 use ggpt_sfm::input::{cameras_from_flat, read_inputs};
 use ggpt_sfm::masks::Preset;
 use ggpt_sfm::output::{ColmapExport, ColmapPoints, write_outputs};
-use ggpt_sfm::pipeline::{SfmConfig, run_sfm_correspondences};
-use ggpt_sfm::st::StFile;
-use indicatif::{ProgressBar, ProgressStyle};
+use ggpt_sfm::pipeline::{SfmConfig, run_sfm_correspondences_with_progress};
 
 #[derive(Parser, Debug)]
-#[command(name = "ggpt-sfm", version, about = "GGPT lightweight SfM: dense-match filtering, bundle adjustment, DLT triangulation")]
+#[command(
+    name = "ggpt-sfm",
+    version,
+    about = "GGPT lightweight SfM: dense-match filtering, bundle adjustment, DLT triangulation"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -29,16 +33,6 @@ struct Cli {
 enum Command {
     /// Run the SfM stage on feed-forward outputs and dense matches.
     Run(RunArgs),
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-enum PresetArg {
-    /// benchmark_sfm.yaml: BA 0.6 / 2 px, DLT 0.1 / 4 px, epipolar 4 px, angle 3°, reprojection 4 px, PINHOLE.
-    Benchmark,
-    /// demo.yaml: BA 0.6 / 2 px, DLT 0.4 / 2 px, epipolar 2 px, angle 5°, reprojection 2 px, SIMPLE_PINHOLE.
-    Demo,
-    /// > 50 views: BA 0.8 / 1 px, 512 tracks per view, DLT 0.4 / 1 px, angle 7°, reprojection 1 px.
-    ManyViews,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -83,9 +77,13 @@ struct RunArgs {
     /// a `matches/<matcher>.safetensors` file, or a scene directory.
     #[arg(long)]
     matches: PathBuf,
-    /// Threshold preset.
-    #[arg(long, value_enum, default_value = "benchmark")]
-    preset: PresetArg,
+    /// SfM threshold preset (`docs/sfm.md`): `benchmark` (benchmark_sfm.yaml: BA 0.6 / 2 px,
+    /// DLT 0.1 / 4 px, epipolar 4 px, angle 3°, reprojection 4 px, PINHOLE), `demo` (demo.yaml:
+    /// BA 0.6 / 2 px, DLT 0.4 / 2 px, epipolar 2 px, angle 5°, reprojection 2 px,
+    /// SIMPLE_PINHOLE) or `many-views` (> 50 views: BA 0.8 / 1 px, 512 tracks per view,
+    /// DLT 0.4 / 1 px, angle 7°, reprojection 1 px). `--preset` is the old spelling.
+    #[arg(long, alias = "preset", value_enum, default_value_t)]
+    sfm_preset: SfmPresetArg,
     /// BA tracks per view (`mintrack_per_view`).
     #[arg(long)]
     mintrack_per_view: Option<usize>,
@@ -154,9 +152,8 @@ struct RunArgs {
     /// Seed of every random choice (the stage is deterministic).
     #[arg(long, default_value_t = 42)]
     seed: u64,
-    /// Hide the progress bars.
-    #[arg(long)]
-    no_progress: bool,
+    #[command(flatten)]
+    progress: ProgressArgs,
 }
 
 fn read_cameras(path: &Path, n: usize) -> Result<Cameras> {
@@ -164,22 +161,21 @@ fn read_cameras(path: &Path, n: usize) -> Result<Cameras> {
     let prefix = if f.has("extrinsics") { "" } else { "ba/out_" };
     let ek = format!("{prefix}extrinsics");
     let ik = format!("{prefix}intrinsics");
-    let e = f.f32(&ek)?;
+    let e = f.f32_tensor(&ek)?;
     let rows = match e.shape.as_slice() {
         [m, r, 4] if *m == n && (*r == 3 || *r == 4) => *r,
-        s => bail!("{}: [{ek}] shape {s:?} is not [N={n}, 3, 4]", path.display()),
+        s => bail!(
+            "{}: [{ek}] shape {s:?} is not [N={n}, 3, 4]",
+            path.display()
+        ),
     };
-    let k = f.f32(&ik)?;
+    let k = f.f32_tensor(&ik)?;
     f.expect_shape(&ik, &k, &[n, 3, 3])?;
     Ok(cameras_from_flat(path, n, &e.data, rows, &k.data)?)
 }
 
 fn run(args: RunArgs) -> Result<()> {
-    let preset = match args.preset {
-        PresetArg::Benchmark => Preset::Benchmark,
-        PresetArg::Demo => Preset::Demo,
-        PresetArg::ManyViews => Preset::ManyViews,
-    };
+    let preset = Preset::parse(args.sfm_preset.name())?;
     let mut cfg = SfmConfig::preset(preset);
     let t = &mut cfg.thresholds;
     if let Some(v) = args.mintrack_per_view {
@@ -215,7 +211,11 @@ fn run(args: RunArgs) -> Result<()> {
     cfg.shared_camera = !args.per_view_camera;
     cfg.refine_focal = !args.fixed_focal;
     if let Some(s) = args.ba_loss_scale {
-        cfg.ba_loss = if s > 0.0 { LossFunction::Cauchy { scale: s } } else { LossFunction::Trivial };
+        cfg.ba_loss = if s > 0.0 {
+            LossFunction::Cauchy { scale: s }
+        } else {
+            LossFunction::Trivial
+        };
     }
     cfg.ba_options = match args.ba_solver {
         BaSolverArg::Official => BaOptions::official(),
@@ -228,24 +228,38 @@ fn run(args: RunArgs) -> Result<()> {
     cfg.scatter.drop_outside = args.drop_outside;
     cfg.cheirality = args.cheirality;
     cfg.seed = args.seed;
-    cfg.progress = !args.no_progress;
 
     let t0 = Instant::now();
-    let spinner = if cfg.progress { ProgressBar::new_spinner() } else { ProgressBar::hidden() };
-    if let Ok(s) = ProgressStyle::with_template("{spinner} {msg} [{elapsed}]") {
-        spinner.set_style(s);
-    }
-    spinner.enable_steady_tick(std::time::Duration::from_millis(120));
-    spinner.set_message(format!("reading feed-forward outputs {} and matches {}", args.ff.display(), args.matches.display()));
-    let (ff, m) = read_inputs(&args.ff, &args.matches)
-        .with_context(|| format!("reading --ff {} / --matches {}", args.ff.display(), args.matches.display()))?;
-    spinner.finish_and_clear();
+    let reading = ggpt_cli::Bar::new("read", 1);
+    reading.set_message("feed-forward outputs and matches");
+    let (ff, m) = read_inputs(&args.ff, &args.matches).with_context(|| {
+        format!(
+            "reading --ff {} / --matches {}",
+            args.ff.display(),
+            args.matches.display()
+        )
+    })?;
+    reading.finish();
     tracing::info!(views = ff.dims.n, h = ff.dims.h, w = ff.dims.w, matchers = ?m.names, seconds = t0.elapsed().as_secs_f64(), "inputs read");
     let fixed = match &args.cameras {
-        Some(p) => Some(read_cameras(p, ff.dims.n).with_context(|| format!("reading --cameras {}", p.display()))?),
+        Some(p) => Some(
+            read_cameras(p, ff.dims.n)
+                .with_context(|| format!("reading --cameras {}", p.display()))?,
+        ),
         None => None,
     };
-    let out = run_sfm_correspondences(&ff.ff, &ff.images, &m.sets, m.rank_scores.as_deref(), &cfg, fixed.as_ref()).context("running the SfM stage")?;
+    let mut bars = StageBars::new();
+    let out = run_sfm_correspondences_with_progress(
+        &ff.ff,
+        &ff.images,
+        &m.sets,
+        m.rank_scores.as_deref(),
+        &cfg,
+        fixed.as_ref(),
+        &mut |p| bars.report(p),
+    )
+    .context("running the SfM stage")?;
+    bars.finish();
     let export = ColmapExport {
         points: match args.colmap_points {
             ColmapPointsArg::Ba => ColmapPoints::Ba,
@@ -256,7 +270,8 @@ fn run(args: RunArgs) -> Result<()> {
         model: cfg.camera_model,
         shared: cfg.shared_camera,
     };
-    let cs = write_outputs(&args.out, &out, &ff.images, &ff.image_names, &export).with_context(|| format!("writing outputs to {}", args.out.display()))?;
+    let cs = write_outputs(&args.out, &out, &ff.images, &ff.image_names, &export)
+        .with_context(|| format!("writing outputs to {}", args.out.display()))?;
     let s = &out.summary;
     println!(
         "ggpt-sfm: {} views {}x{}, {} BA tracks, BA cost {:.6} -> {:.6} ({}), DLT tracks {:?}, {} pixels with a DLT point, COLMAP {} points ({} observations); wrote {}",
@@ -266,7 +281,11 @@ fn run(args: RunArgs) -> Result<()> {
         s.tracks_selected,
         s.ba.initial_cost,
         s.ba.final_cost,
-        if s.ba.success { "ok" } else { "failed: feed-forward cameras kept" },
+        if s.ba.success {
+            "ok"
+        } else {
+            "failed: feed-forward cameras kept"
+        },
         s.dlt_tracks,
         s.points_kept,
         cs.points3d,
@@ -274,17 +293,18 @@ fn run(args: RunArgs) -> Result<()> {
         args.out.display()
     );
     if !out.result.points_success {
-        bail!("no DLT point survived the filters (points_success = false); outputs were written to {}", args.out.display());
+        bail!(
+            "no DLT point survived the filters (points_success = false); outputs were written to {}",
+            args.out.display()
+        );
     }
     Ok(())
 }
 
 fn main() -> Result<()> {
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")))
-        .init();
     let cli = Cli::parse();
+    let Command::Run(a) = &cli.command;
+    ggpt_cli::init_logging(a.progress.bars());
     match cli.command {
         Command::Run(args) => run(args),
     }

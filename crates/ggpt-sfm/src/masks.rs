@@ -26,7 +26,9 @@ impl Preset {
             "benchmark" => Ok(Preset::Benchmark),
             "demo" => Ok(Preset::Demo),
             "many-views" => Ok(Preset::ManyViews),
-            other => Err(SfmError::Invalid(format!("unknown preset {other:?} (benchmark, demo, many-views)"))),
+            other => Err(SfmError::Invalid(format!(
+                "unknown preset {other:?} (benchmark, demo, many-views)"
+            ))),
         }
     }
 
@@ -131,8 +133,18 @@ pub fn compute_masks(corr: &Correspondences, thr: &Thresholds) -> Result<(Vec<bo
     thr.validate()?;
     let (bs, bc) = (thr.ba_score as f32, thr.ba_cycle as f32);
     let (ds, dc) = (thr.dlt_score as f32, thr.dlt_cycle as f32);
-    let mut m_ba: Vec<bool> = corr.scores.iter().zip(&corr.cycle).map(|(&s, &c)| passes(s, c, bs, bc)).collect();
-    let mut m_dlt: Vec<bool> = corr.scores.iter().zip(&corr.cycle).map(|(&s, &c)| passes(s, c, ds, dc)).collect();
+    let mut m_ba: Vec<bool> = corr
+        .scores
+        .iter()
+        .zip(&corr.cycle)
+        .map(|(&s, &c)| passes(s, c, bs, bc))
+        .collect();
+    let mut m_dlt: Vec<bool> = corr
+        .scores
+        .iter()
+        .zip(&corr.cycle)
+        .map(|(&s, &c)| passes(s, c, ds, dc))
+        .collect();
     let hw = corr.dims.hw();
     for s in 0..corr.dims.n {
         let b = corr.idx(s, s, 0);
@@ -161,14 +173,33 @@ mod tests {
     fn diagonal_always_true_and_presets() {
         let dims = Dims { n: 2, h: 1, w: 2 };
         let e = 8;
-        let corr = Correspondences { dims, matches: vec![0.0; 2 * e], scores: vec![0.0; e], cycle: vec![1e6; e] };
+        let corr = Correspondences {
+            dims,
+            matches: vec![0.0; 2 * e],
+            scores: vec![0.0; e],
+            cycle: vec![1e6; e],
+        };
         let (ba, dlt) = compute_masks(&corr, &Thresholds::preset(Preset::Benchmark)).unwrap();
         let diag: Vec<bool> = (0..e).map(|i| ba[i] && dlt[i]).collect();
-        assert_eq!(diag, vec![true, true, false, false, false, false, true, true]);
+        assert_eq!(
+            diag,
+            vec![true, true, false, false, false, false, true, true]
+        );
         let mv = Thresholds::preset(Preset::ManyViews);
-        assert_eq!((mv.ba_score, mv.ba_cycle, mv.mintrack_per_view, mv.min_tri_angle_deg), (0.8, 1.0, 512, 7.0));
+        assert_eq!(
+            (
+                mv.ba_score,
+                mv.ba_cycle,
+                mv.mintrack_per_view,
+                mv.min_tri_angle_deg
+            ),
+            (0.8, 1.0, 512, 7.0)
+        );
         let demo = Thresholds::preset(Preset::Demo);
-        assert_eq!((demo.dlt_score, demo.dlt_cycle, demo.max_reproj_error), (0.4, 2.0, 2.0));
+        assert_eq!(
+            (demo.dlt_score, demo.dlt_cycle, demo.max_reproj_error),
+            (0.4, 2.0, 2.0)
+        );
         assert_eq!(Preset::parse("many-views").unwrap(), Preset::ManyViews);
         assert!(Preset::parse("fast").is_err());
     }

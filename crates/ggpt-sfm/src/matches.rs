@@ -69,9 +69,11 @@ impl Correspondences {
             let base = self.idx(s, s, 0);
             for k in 0..hw {
                 let i = base + k;
-                if let (Some(m), Some(sc), Some(c)) =
-                    (self.matches.get_mut(2 * i..2 * i + 2), self.scores.get_mut(i), self.cycle.get_mut(i))
-                {
+                if let (Some(m), Some(sc), Some(c)) = (
+                    self.matches.get_mut(2 * i..2 * i + 2),
+                    self.scores.get_mut(i),
+                    self.cycle.get_mut(i),
+                ) {
                     m[0] = (k % w) as f32;
                     m[1] = (k / w) as f32;
                     *sc = 1.0;
@@ -101,7 +103,11 @@ impl Correspondences {
         if let Some(c) = &set.pred_cycle_error
             && c.len() != e
         {
-            return Err(SfmError::Shape(format!("matcher {}: {} cycle errors, expected {e}", set.matcher, c.len())));
+            return Err(SfmError::Shape(format!(
+                "matcher {}: {} cycle errors, expected {e}",
+                set.matcher,
+                c.len()
+            )));
         }
         let mut corr = Correspondences {
             dims,
@@ -123,8 +129,13 @@ impl Correspondences {
     /// cycle error [`MISSING_CYCLE_ERROR`]) so that they fail every threshold (documented fallback).
     pub fn sanitize(&mut self) {
         for i in 0..self.scores.len() {
-            let bad_match = self.matches.get(2 * i..2 * i + 2).is_some_and(|m| !m[0].is_finite() || !m[1].is_finite());
-            let bad = bad_match || !self.scores[i].is_finite() || self.cycle.get(i).is_some_and(|c| c.is_nan());
+            let bad_match = self
+                .matches
+                .get(2 * i..2 * i + 2)
+                .is_some_and(|m| !m[0].is_finite() || !m[1].is_finite());
+            let bad = bad_match
+                || !self.scores[i].is_finite()
+                || self.cycle.get(i).is_some_and(|c| c.is_nan());
             if bad {
                 self.scores[i] = 0.0;
                 if let Some(c) = self.cycle.get_mut(i) {
@@ -142,7 +153,11 @@ impl Correspondences {
     /// target-major `[t, s, k]` layout; `c` values per entry (1 or 2).
     pub fn transpose_pairs<T: Copy>(src: &[T], n: usize, hw: usize, c: usize) -> Result<Vec<T>> {
         if src.len() != n * n * hw * c {
-            return Err(SfmError::Shape(format!("pair array: {} values, expected {}", src.len(), n * n * hw * c)));
+            return Err(SfmError::Shape(format!(
+                "pair array: {} values, expected {}",
+                src.len(),
+                n * n * hw * c
+            )));
         }
         let mut out = Vec::with_capacity(src.len());
         for t in 0..n {
@@ -162,7 +177,11 @@ impl Correspondences {
         let mut out = vec![0usize; n];
         for (s, o) in out.iter_mut().enumerate() {
             *o = (0..hw)
-                .filter(|&k| (0..n).any(|t| t != s && self.scores[self.idx(t, s, k)] >= crate::ensemble::INVALID_SCORE))
+                .filter(|&k| {
+                    (0..n).any(|t| {
+                        t != s && self.scores[self.idx(t, s, k)] >= crate::ensemble::INVALID_SCORE
+                    })
+                })
                 .count();
         }
         out
@@ -181,7 +200,12 @@ mod tests {
     fn diagonal_is_identity() {
         let d = dims();
         let e = 4 * 6;
-        let mut c = Correspondences { dims: d, matches: vec![7.0; 2 * e], scores: vec![0.5; e], cycle: vec![3.0; e] };
+        let mut c = Correspondences {
+            dims: d,
+            matches: vec![7.0; 2 * e],
+            scores: vec![0.5; e],
+            cycle: vec![3.0; e],
+        };
         c.apply_diagonal();
         let i = c.idx(1, 1, 4);
         assert_eq!((c.matches[2 * i], c.matches[2 * i + 1]), (1.0, 1.0));
@@ -211,7 +235,13 @@ mod tests {
         let e = 24;
         let mut m = vec![0.5f32; 2 * e];
         m[2 * 6] = f32::NAN; // (t=0, s=1, k=0)
-        let set = MatchSet { matcher: "x".into(), pred_matches: m, pred_scores: vec![0.9; e], pred_cycle_error: Some(vec![0.1; e]), rank_scores: None };
+        let set = MatchSet {
+            matcher: "x".into(),
+            pred_matches: m,
+            pred_scores: vec![0.9; e],
+            pred_cycle_error: Some(vec![0.1; e]),
+            rank_scores: None,
+        };
         let c = Correspondences::from_match_set(&set, d).unwrap();
         let i = c.idx(0, 1, 0);
         assert_eq!(c.scores[i], 0.0);

@@ -6,8 +6,10 @@ use std::path::Path;
 
 use ggpt_core::io::atomic::write_bytes_atomic;
 use ggpt_core::io::colmap::{
-    ColmapCamera, ColmapCameraModel, ColmapImage, ColmapModel, ColmapPoint2D, ColmapPoint3D, pixel_to_colmap, qvec_to_rotation, write_colmap,
+    ColmapCamera, ColmapCameraModel, ColmapImage, ColmapModel, ColmapPoint2D, ColmapPoint3D,
+    pixel_to_colmap, qvec_to_rotation, write_colmap,
 };
+use ggpt_core::io::st::StWriter;
 use ggpt_core::{Dims, SfmResult};
 use nalgebra::{Point3, Vector3};
 
@@ -15,29 +17,42 @@ use crate::ba::{CameraModel, MIN_DEPTH};
 use crate::dlt::DltStatus;
 use crate::error::Result;
 use crate::pipeline::SfmOutput;
-use crate::st::{OutTensor, serialize};
 
 /// Serialises the SfM result as safetensors with the keys of the official
 /// `sfm_dlt_outputs.bin`: `points` F32 `[N,h,w,3]` (SfM frame), `point_masks` BOOL `[N,h,w]`,
 /// `intrinsics` F32 `[N,3,3]` (pixel-centre convention), `extrinsics` F32 `[N,3,4]`
 /// (`cam_from_world`), plus `camera_success` / `points_success` BOOL `[]`, `dlt_count` U16 and
 /// `dlt_reproj` F32 `[N,h,w]`.
-pub fn encode_sfm_safetensors(res: &SfmResult, dims: Dims, dlt_count: &[u16], dlt_reproj: &[f32]) -> Result<Vec<u8>> {
+pub fn encode_sfm_safetensors(
+    res: &SfmResult,
+    dims: Dims,
+    dlt_count: &[u16],
+    dlt_reproj: &[f32],
+) -> Result<Vec<u8>> {
     let (n, h, w) = (dims.n, dims.h, dims.w);
-    let intr: Vec<f32> = res.cameras.intrinsics.iter().flat_map(|k| (0..9).map(move |i| k[(i / 3, i % 3)] as f32)).collect();
-    let ext: Vec<f32> = res.cameras.cam_from_world.iter().flat_map(|e| (0..12).map(move |i| e[(i / 4, i % 4)] as f32)).collect();
-    let tensors = vec![
-        OutTensor::f32("points", vec![n, h, w, 3], &res.points),
-        OutTensor::bool("point_masks", vec![n, h, w], &res.mask),
-        OutTensor::f32("intrinsics", vec![n, 3, 3], &intr),
-        OutTensor::f32("extrinsics", vec![n, 3, 4], &ext),
-        OutTensor::bool("camera_success", vec![], &[res.camera_success]),
-        OutTensor::bool("points_success", vec![], &[res.points_success]),
-        OutTensor::u16("dlt_count", vec![n, h, w], dlt_count),
-        OutTensor::f32("dlt_reproj", vec![n, h, w], dlt_reproj),
-    ];
+    let intr: Vec<f32> = res
+        .cameras
+        .intrinsics
+        .iter()
+        .flat_map(|k| (0..9).map(move |i| k[(i / 3, i % 3)] as f32))
+        .collect();
+    let ext: Vec<f32> = res
+        .cameras
+        .cam_from_world
+        .iter()
+        .flat_map(|e| (0..12).map(move |i| e[(i / 4, i % 4)] as f32))
+        .collect();
+    let mut st = StWriter::new();
+    st.f32("points", &[n, h, w, 3], &res.points);
+    st.bool("point_masks", &[n, h, w], &res.mask);
+    st.f32("intrinsics", &[n, 3, 3], &intr);
+    st.f32("extrinsics", &[n, 3, 4], &ext);
+    st.bool("camera_success", &[], &[res.camera_success]);
+    st.bool("points_success", &[], &[res.points_success]);
+    st.u16("dlt_count", &[n, h, w], dlt_count);
+    st.f32("dlt_reproj", &[n, h, w], dlt_reproj);
     let meta = HashMap::from([("format".to_string(), "ggpt-sfm".to_string())]);
-    serialize(&tensors, Some(meta))
+    Ok(st.finish(Path::new("sfm_dlt_outputs.safetensors"), Some(meta))?)
 }
 
 /// Which 3D points the COLMAP model `sparse/0/` holds (`ggpt-sfm run --colmap-points`).
@@ -73,7 +88,12 @@ pub struct ColmapExport {
 
 impl Default for ColmapExport {
     fn default() -> Self {
-        ColmapExport { points: ColmapPoints::Ba, max_reproj_error: 4.0, model: CameraModel::Pinhole, shared: true }
+        ColmapExport {
+            points: ColmapPoints::Ba,
+            max_reproj_error: 4.0,
+            model: CameraModel::Pinhole,
+            shared: true,
+        }
     }
 }
 
@@ -116,7 +136,11 @@ fn project_colmap(cam: &ColmapCamera, im: &ColmapImage, x: &Point3<f64>) -> Opti
 }
 
 fn source_rgb(images: &[f32], j: usize) -> [u8; 3] {
-    let c = |i: usize| images.get(3 * j + i).map_or(0, |v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
+    let c = |i: usize| {
+        images
+            .get(3 * j + i)
+            .map_or(0, |v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+    };
     [c(0), c(1), c(2)]
 }
 
@@ -138,14 +162,26 @@ fn source_rgb(images: &[f32], j: usize) -> [u8; 3] {
 ///
 /// Each image's `POINTS2D` are listed in ascending point id; observations are `x + 0.5` of the
 /// ff-pixel match (f64).
-pub fn colmap_model(out: &SfmOutput, images: &[f32], image_names: &[String], export: &ColmapExport) -> Result<(ColmapModel, ColmapSummary)> {
+pub fn colmap_model(
+    out: &SfmOutput,
+    images: &[f32],
+    image_names: &[String],
+    export: &ColmapExport,
+) -> Result<(ColmapModel, ColmapSummary)> {
     let dims = out.correspondences.dims;
     let (n, h, w) = (dims.n, dims.h, dims.w);
     let hw = h * w;
     let nt = n * hw;
     let cams = &out.result.cameras;
     let shared = export.shared;
-    let names: Vec<String> = (0..n).map(|v| image_names.get(v).cloned().unwrap_or_else(|| format!("{v:06}.jpg"))).collect();
+    let names: Vec<String> = (0..n)
+        .map(|v| {
+            image_names
+                .get(v)
+                .cloned()
+                .unwrap_or_else(|| format!("{v:06}.jpg"))
+        })
+        .collect();
     let simple = export.model == CameraModel::SimplePinhole;
     let mut cm = ColmapModel::from_cameras(cams, h, w, &names, simple, shared)?;
     let mut summary = ColmapSummary {
@@ -172,7 +208,11 @@ pub fn colmap_model(out: &SfmOutput, images: &[f32], image_names: &[String], exp
                 }
             }
             for (pi, obs) in per_point.iter().enumerate() {
-                let x = out.ba_points.get(pi).copied().unwrap_or(Point3::new(f64::NAN, f64::NAN, f64::NAN));
+                let x = out.ba_points.get(pi).copied().unwrap_or(Point3::new(
+                    f64::NAN,
+                    f64::NAN,
+                    f64::NAN,
+                ));
                 if !x.iter().all(|c| c.is_finite()) {
                     summary.dropped_points += 1;
                     summary.dropped_observations += obs.len();
@@ -181,7 +221,11 @@ pub fn colmap_model(out: &SfmOutput, images: &[f32], image_names: &[String], exp
                 let mut kept: Vec<(usize, [f64; 2], f64)> = Vec::with_capacity(obs.len());
                 for &(v, xy) in obs {
                     let Some(im) = cm.images.get(v) else { continue };
-                    let cam = if shared { &cm.cameras[0] } else { &cm.cameras[v] };
+                    let cam = if shared {
+                        &cm.cameras[0]
+                    } else {
+                        &cm.cameras[v]
+                    };
                     let uv = pixel_to_colmap(xy);
                     if let Some(p) = project_colmap(cam, im, &x) {
                         let err = ((p[0] - uv[0]).powi(2) + (p[1] - uv[1]).powi(2)).sqrt();
@@ -202,18 +246,32 @@ pub fn colmap_model(out: &SfmOutput, images: &[f32], image_names: &[String], exp
                 for &(v, uv, err) in &kept {
                     let im = &mut cm.images[v];
                     track.push((v as u32 + 1, im.points2d.len() as u32));
-                    im.points2d.push(ColmapPoint2D { xy: uv, point3d_id: Some(id) });
+                    im.points2d.push(ColmapPoint2D {
+                        xy: uv,
+                        point3d_id: Some(id),
+                    });
                     err_sum += err;
                     summary.max_reprojection_error = summary.max_reprojection_error.max(err);
                 }
                 let j = bt.track_ids.get(pi).copied().unwrap_or(usize::MAX);
-                cm.points3d.push(ColmapPoint3D { id, xyz: [x.x, x.y, x.z], rgb: source_rgb(images, j), error: err_sum / kept.len() as f64, track });
+                cm.points3d.push(ColmapPoint3D {
+                    id,
+                    xyz: [x.x, x.y, x.z],
+                    rgb: source_rgb(images, j),
+                    error: err_sum / kept.len() as f64,
+                    track,
+                });
             }
         }
         ColmapPoints::Dlt => {
             let corr = &out.correspondences;
             let vis = &out.dlt_visibility;
-            for tr in out.dlt.tracks.iter().filter(|t| t.status == DltStatus::Kept) {
+            for tr in out
+                .dlt
+                .tracks
+                .iter()
+                .filter(|t| t.status == DltStatus::Kept)
+            {
                 summary.candidates += 1;
                 let j = tr.track;
                 let id = cm.points3d.len() as u64 + 1;
@@ -221,20 +279,31 @@ pub fn colmap_model(out: &SfmOutput, images: &[f32], image_names: &[String], exp
                 for t in 0..n {
                     if vis.get(t * nt + j).copied().unwrap_or(false) {
                         let i = 2 * (t * nt + j);
-                        let xy = pixel_to_colmap([corr.matches[i] as f64, corr.matches[i + 1] as f64]);
+                        let xy =
+                            pixel_to_colmap([corr.matches[i] as f64, corr.matches[i + 1] as f64]);
                         let im = &mut cm.images[t];
                         track.push((t as u32 + 1, im.points2d.len() as u32));
-                        im.points2d.push(ColmapPoint2D { xy, point3d_id: Some(id) });
+                        im.points2d.push(ColmapPoint2D {
+                            xy,
+                            point3d_id: Some(id),
+                        });
                     }
                 }
-                cm.points3d.push(ColmapPoint3D { id, xyz: tr.point, rgb: source_rgb(images, j), error: tr.reproj_mean, track });
+                cm.points3d.push(ColmapPoint3D {
+                    id,
+                    xyz: tr.point,
+                    rgb: source_rgb(images, j),
+                    error: tr.reproj_mean,
+                    track,
+                });
             }
         }
     }
     summary.points3d = cm.points3d.len();
     summary.observations = cm.points3d.iter().map(|p| p.track.len()).sum();
     if !cm.points3d.is_empty() {
-        summary.mean_reprojection_error = cm.points3d.iter().map(|p| p.error).sum::<f64>() / cm.points3d.len() as f64;
+        summary.mean_reprojection_error =
+            cm.points3d.iter().map(|p| p.error).sum::<f64>() / cm.points3d.len() as f64;
     }
     if export.points == ColmapPoints::Dlt {
         summary.max_reprojection_error = f64::NAN;
@@ -245,19 +314,36 @@ pub fn colmap_model(out: &SfmOutput, images: &[f32], image_names: &[String], exp
 /// Writes `dir/sfm_dlt_outputs.safetensors`, `dir/sparse/0/` (COLMAP binary, content chosen by
 /// `colmap`, see [`colmap_model`]) and `dir/summary.json` (the run's [`crate::pipeline::SfmSummary`]
 /// plus `colmap`: the [`ColmapSummary`]). Returns the COLMAP summary.
-pub fn write_outputs(dir: &Path, out: &SfmOutput, images: &[f32], image_names: &[String], colmap: &ColmapExport) -> Result<ColmapSummary> {
-    std::fs::create_dir_all(dir).map_err(|e| crate::SfmError::Io { path: dir.to_path_buf(), source: e })?;
+pub fn write_outputs(
+    dir: &Path,
+    out: &SfmOutput,
+    images: &[f32],
+    image_names: &[String],
+    colmap: &ColmapExport,
+) -> Result<ColmapSummary> {
+    std::fs::create_dir_all(dir).map_err(|e| crate::SfmError::Io {
+        path: dir.to_path_buf(),
+        source: e,
+    })?;
     let dims = out.correspondences.dims;
     let bytes = encode_sfm_safetensors(&out.result, dims, &out.dlt_count, &out.dlt_reproj)?;
     write_bytes_atomic(&dir.join("sfm_dlt_outputs.safetensors"), &bytes)?;
     let sparse = dir.join("sparse").join("0");
-    std::fs::create_dir_all(&sparse).map_err(|e| crate::SfmError::Io { path: sparse.clone(), source: e })?;
+    std::fs::create_dir_all(&sparse).map_err(|e| crate::SfmError::Io {
+        path: sparse.clone(),
+        source: e,
+    })?;
     let (model, cs) = colmap_model(out, images, image_names, colmap)?;
     write_colmap(&sparse, &model, false)?;
-    let json_err = |e: serde_json::Error| crate::SfmError::Invalid(format!("{}: {e}", dir.join("summary.json").display()));
+    let json_err = |e: serde_json::Error| {
+        crate::SfmError::Invalid(format!("{}: {e}", dir.join("summary.json").display()))
+    };
     let mut value = serde_json::to_value(&out.summary).map_err(json_err)?;
     if let Some(obj) = value.as_object_mut() {
-        obj.insert("colmap".into(), serde_json::to_value(&cs).map_err(json_err)?);
+        obj.insert(
+            "colmap".into(),
+            serde_json::to_value(&cs).map_err(json_err)?,
+        );
     }
     let json = serde_json::to_vec_pretty(&value).map_err(json_err)?;
     write_bytes_atomic(&dir.join("summary.json"), &json)?;

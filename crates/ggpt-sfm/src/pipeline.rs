@@ -7,8 +7,8 @@
 
 use std::time::Instant;
 
+use ggpt_core::Progress;
 use ggpt_core::{Cameras, Dims, FeedForward, MatchSet, SfmResult};
-use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::{Matrix3, Point3, Vector2};
 
 use crate::ba::{BaObservation, BaOptions, BaProblem, CameraModel, LossFunction, bundle_adjust};
@@ -57,8 +57,6 @@ pub struct SfmConfig {
     pub cheirality: bool,
     /// Seed of every random choice (default 42; the stage is deterministic).
     pub seed: u64,
-    /// Show a progress bar on stderr.
-    pub progress: bool,
 }
 
 impl SfmConfig {
@@ -73,13 +71,14 @@ impl SfmConfig {
             },
             shared_camera: true,
             refine_focal: true,
-            ba_loss: LossFunction::Cauchy { scale: BA_CAUCHY_SCALE },
+            ba_loss: LossFunction::Cauchy {
+                scale: BA_CAUCHY_SCALE,
+            },
             ba_options: BaOptions::official(),
             legacy_focal_offset: false,
             scatter: ScatterOptions::default(),
             cheirality: false,
             seed: 42,
-            progress: false,
         }
     }
 }
@@ -185,53 +184,111 @@ pub struct SfmOutput {
     pub summary: SfmSummary,
 }
 
-struct Stages {
-    bar: ProgressBar,
+/// Name of the SfM stage in progress reports.
+pub const PROGRESS_STAGE: &str = "sfm";
+
+/// The steps of [`run_sfm_correspondences`], in order: one progress unit each.
+const STEPS: [&str; 7] = [
+    "ensemble",
+    "masks",
+    "track selection",
+    "bundle adjustment",
+    "epipolar filter",
+    "triangulation",
+    "scatter",
+];
+
+/// Step timings and progress reports of one SfM run.
+struct Stages<'a> {
+    progress: &'a mut dyn FnMut(Progress),
     timings: Vec<(String, f64)>,
+    done: u64,
     t: Instant,
 }
 
-impl Stages {
-    fn new(progress: bool, n: u64) -> Self {
-        let bar = if progress { ProgressBar::new(n) } else { ProgressBar::hidden() };
-        if let Ok(style) = ProgressStyle::with_template("sfm {bar:30} {pos}/{len} {msg} [{elapsed}]") {
-            bar.set_style(style);
+impl<'a> Stages<'a> {
+    fn new(progress: &'a mut dyn FnMut(Progress)) -> Self {
+        Stages {
+            progress,
+            timings: Vec::new(),
+            done: 0,
+            t: Instant::now(),
         }
-        Stages { bar, timings: Vec::new(), t: Instant::now() }
     }
-    fn start(&mut self, name: &str) {
-        self.bar.set_message(name.to_string());
+    fn report(&mut self, detail: &'static str) {
+        let p = Progress::new(PROGRESS_STAGE, self.done, STEPS.len() as u64);
+        (self.progress)(p.with_detail(detail));
+    }
+    fn start(&mut self, name: &'static str) {
+        self.report(name);
         self.t = Instant::now();
     }
     fn done(&mut self, name: &str) {
-        self.timings.push((name.to_string(), self.t.elapsed().as_secs_f64()));
-        tracing::debug!(stage = name, seconds = self.t.elapsed().as_secs_f64(), "stage done");
-        self.bar.inc(1);
+        self.timings
+            .push((name.to_string(), self.t.elapsed().as_secs_f64()));
+        tracing::debug!(
+            stage = name,
+            seconds = self.t.elapsed().as_secs_f64(),
+            "stage done"
+        );
+        self.done += 1;
+        if self.done == STEPS.len() as u64 {
+            self.report("");
+        }
     }
 }
 
 fn check_inputs(ff: &FeedForward, images: &[f32], dims: Dims) -> Result<()> {
     let px = dims.pixels();
     if dims.n < 2 {
-        return Err(SfmError::Invalid(format!("the SfM stage needs at least 2 views, got {}", dims.n)));
+        return Err(SfmError::Invalid(format!(
+            "the SfM stage needs at least 2 views, got {}",
+            dims.n
+        )));
     }
     if images.len() != 3 * px {
-        return Err(SfmError::Shape(format!("images: {} values, expected N*h*w*3 = {} (N={} h={} w={})", images.len(), 3 * px, dims.n, dims.h, dims.w)));
+        return Err(SfmError::Shape(format!(
+            "images: {} values, expected N*h*w*3 = {} (N={} h={} w={})",
+            images.len(),
+            3 * px,
+            dims.n,
+            dims.h,
+            dims.w
+        )));
     }
     if ff.points.len() != 3 * px {
-        return Err(SfmError::Shape(format!("feed-forward points: {} values, expected {}", ff.points.len(), 3 * px)));
+        return Err(SfmError::Shape(format!(
+            "feed-forward points: {} values, expected {}",
+            ff.points.len(),
+            3 * px
+        )));
     }
     let c = &ff.cameras;
     if c.cam_from_world.len() != dims.n || c.intrinsics.len() != dims.n {
-        return Err(SfmError::Shape(format!("feed-forward cameras: {} extrinsics / {} intrinsics for {} views", c.cam_from_world.len(), c.intrinsics.len(), dims.n)));
+        return Err(SfmError::Shape(format!(
+            "feed-forward cameras: {} extrinsics / {} intrinsics for {} views",
+            c.cam_from_world.len(),
+            c.intrinsics.len(),
+            dims.n
+        )));
     }
     for v in 0..dims.n {
-        if c.cam_from_world[v].iter().chain(c.intrinsics[v].iter()).any(|x| !x.is_finite()) {
-            return Err(SfmError::Invalid(format!("feed-forward camera of view {v} has a non-finite entry")));
+        if c.cam_from_world[v]
+            .iter()
+            .chain(c.intrinsics[v].iter())
+            .any(|x| !x.is_finite())
+        {
+            return Err(SfmError::Invalid(format!(
+                "feed-forward camera of view {v} has a non-finite entry"
+            )));
         }
         let k = &c.intrinsics[v];
         if !(k[(0, 0)] > 0.0 && k[(1, 1)] > 0.0) {
-            return Err(SfmError::Invalid(format!("feed-forward intrinsics of view {v}: focal lengths must be positive, got fx={} fy={}", k[(0, 0)], k[(1, 1)])));
+            return Err(SfmError::Invalid(format!(
+                "feed-forward intrinsics of view {v}: focal lengths must be positive, got fx={} fy={}",
+                k[(0, 0)],
+                k[(1, 1)]
+            )));
         }
     }
     Ok(())
@@ -239,10 +296,38 @@ fn check_inputs(ff: &FeedForward, images: &[f32], dims: Dims) -> Result<()> {
 
 /// Runs the SfM stage on matches stored as [`MatchSet`]s (ff pixels, `formats.md` §5.2).
 /// See [`run_sfm_correspondences`].
-pub fn run_sfm(ff: &FeedForward, images: &[f32], dims: Dims, matches: &[MatchSet], cfg: &SfmConfig) -> Result<SfmOutput> {
-    let sets = matches.iter().map(|m| Correspondences::from_match_set(m, dims)).collect::<Result<Vec<_>>>()?;
+pub fn run_sfm(
+    ff: &FeedForward,
+    images: &[f32],
+    dims: Dims,
+    matches: &[MatchSet],
+    cfg: &SfmConfig,
+) -> Result<SfmOutput> {
+    run_sfm_with_progress(
+        ff,
+        images,
+        dims,
+        matches,
+        cfg,
+        &mut ggpt_core::progress::ignore,
+    )
+}
+
+/// [`run_sfm`] with progress reports (stage [`PROGRESS_STAGE`], one unit per step).
+pub fn run_sfm_with_progress(
+    ff: &FeedForward,
+    images: &[f32],
+    dims: Dims,
+    matches: &[MatchSet],
+    cfg: &SfmConfig,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<SfmOutput> {
+    let sets = matches
+        .iter()
+        .map(|m| Correspondences::from_match_set(m, dims))
+        .collect::<Result<Vec<_>>>()?;
     let rank = matches.iter().find_map(|m| m.rank_scores.clone());
-    run_sfm_correspondences(ff, images, &sets, rank.as_deref(), cfg, None)
+    run_sfm_correspondences_with_progress(ff, images, &sets, rank.as_deref(), cfg, None, progress)
 }
 
 /// Runs the SfM stage.
@@ -267,14 +352,31 @@ pub fn run_sfm_correspondences(
     cfg: &SfmConfig,
     fixed_cameras: Option<&Cameras>,
 ) -> Result<SfmOutput> {
-    let first = sets.first().ok_or_else(|| SfmError::Invalid("no matches given".into()))?;
+    let mut ignore = ggpt_core::progress::ignore;
+    run_sfm_correspondences_with_progress(ff, images, sets, rank, cfg, fixed_cameras, &mut ignore)
+}
+
+/// [`run_sfm_correspondences`] with progress reports (stage [`PROGRESS_STAGE`], one unit per
+/// step; the detail names the step in progress).
+pub fn run_sfm_correspondences_with_progress(
+    ff: &FeedForward,
+    images: &[f32],
+    sets: &[Correspondences],
+    rank: Option<&[f32]>,
+    cfg: &SfmConfig,
+    fixed_cameras: Option<&Cameras>,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<SfmOutput> {
+    let first = sets
+        .first()
+        .ok_or_else(|| SfmError::Invalid("no matches given".into()))?;
     let dims = first.dims;
     check_inputs(ff, images, dims)?;
     cfg.thresholds.validate()?;
     let n = dims.n;
     let hw = dims.hw();
     let nt = n * hw;
-    let mut st = Stages::new(cfg.progress, 8);
+    let mut st = Stages::new(progress);
 
     st.start("ensemble");
     let (corr, sel_idx) = ensemble(sets)?;
@@ -291,13 +393,29 @@ pub fn run_sfm_correspondences(
             }
         }
     }
-    let any_valid = (0..n).any(|t| (0..n).any(|s| s != t && corr.scores[corr.idx(t, s, 0)..corr.idx(t, s, 0) + hw].iter().any(|&v| v >= INVALID_SCORE)));
+    let any_valid = (0..n).any(|t| {
+        (0..n).any(|s| {
+            s != t
+                && corr.scores[corr.idx(t, s, 0)..corr.idx(t, s, 0) + hw]
+                    .iter()
+                    .any(|&v| v >= INVALID_SCORE)
+        })
+    });
     if !any_valid {
         return Err(SfmError::Invalid("all matcher scores are zero (or invalid: non-finite or below 1e-5): there is no correspondence to use".into()));
     }
-    let views_without_matches: Vec<usize> = corr.valid_matches_per_view().iter().enumerate().filter(|(_, c)| **c == 0).map(|(v, _)| v).collect();
+    let views_without_matches: Vec<usize> = corr
+        .valid_matches_per_view()
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| **c == 0)
+        .map(|(v, _)| v)
+        .collect();
     if !views_without_matches.is_empty() {
-        tracing::warn!(?views_without_matches, "views without any valid match: they get no DLT point of their own");
+        tracing::warn!(
+            ?views_without_matches,
+            "views without any valid match: they get no DLT point of their own"
+        );
     }
     st.done("ensemble");
 
@@ -312,7 +430,10 @@ pub fn run_sfm_correspondences(
     let (rank_owned, ranking) = match rank {
         Some(r) => {
             if r.len() != nt {
-                return Err(SfmError::Shape(format!("ranking score: {} values, expected N*h*w = {nt}", r.len())));
+                return Err(SfmError::Shape(format!(
+                    "ranking score: {} values, expected N*h*w = {nt}",
+                    r.len()
+                )));
             }
             (r.to_vec(), "given")
         }
@@ -326,10 +447,16 @@ pub fn run_sfm_correspondences(
     let (cameras, ba, refined_points) = match fixed_cameras {
         Some(c) => {
             if c.cam_from_world.len() != n || c.intrinsics.len() != n {
-                return Err(SfmError::Shape(format!("given cameras: {} / {} for {n} views", c.cam_from_world.len(), c.intrinsics.len())));
+                return Err(SfmError::Shape(format!(
+                    "given cameras: {} / {} for {n} views",
+                    c.cam_from_world.len(),
+                    c.intrinsics.len()
+                )));
             }
             if !c.is_finite() {
-                return Err(SfmError::Invalid("given cameras have a non-finite entry".into()));
+                return Err(SfmError::Invalid(
+                    "given cameras have a non-finite entry".into(),
+                ));
             }
             let ba = BaSummary {
                 success: true,
@@ -354,7 +481,12 @@ pub fn run_sfm_correspondences(
     st.done("bundle adjustment");
 
     st.start("epipolar filter");
-    let epipolar_removed = epipolar_filter(&corr, &mut m_dlt, &cameras, cfg.thresholds.max_epipolar_error)?;
+    let epipolar_removed = epipolar_filter(
+        &corr,
+        &mut m_dlt,
+        &cameras,
+        cfg.thresholds.max_epipolar_error,
+    )?;
     st.done("epipolar filter");
 
     st.start("triangulation");
@@ -369,7 +501,6 @@ pub fn run_sfm_correspondences(
     st.start("scatter");
     let sc: ScatterResult = scatter(&corr, &m_dlt, &dlt, &cfg.scatter)?;
     st.done("scatter");
-    st.bar.finish_and_clear();
 
     let points_kept = sc.mask.iter().filter(|&&b| b).count();
     let summary = SfmSummary {
@@ -404,7 +535,11 @@ pub fn run_sfm_correspondences(
     };
     Ok(SfmOutput {
         result,
-        dlt_count: sc.count.iter().map(|&c| c.min(u16::MAX as u32) as u16).collect(),
+        dlt_count: sc
+            .count
+            .iter()
+            .map(|&c| c.min(u16::MAX as u32) as u16)
+            .collect(),
         dlt_reproj: sc.reproj,
         correspondences: corr,
         dlt_visibility: m_dlt,
@@ -424,7 +559,11 @@ pub fn run_sfm_correspondences(
 /// `K_ff + 0.5` to COLMAP in f32, so the principal point takes the same f32 round trip as the
 /// observations).
 pub fn ba_problem(ff: &FeedForward, dims: Dims, tracks: &BaTracks, cfg: &SfmConfig) -> BaProblem {
-    let focal_offset = if cfg.legacy_focal_offset { LEGACY_FOCAL_OFFSET } else { 0.0 };
+    let focal_offset = if cfg.legacy_focal_offset {
+        LEGACY_FOCAL_OFFSET
+    } else {
+        0.0
+    };
     BaProblem {
         cam_from_world: ff.cameras.cam_from_world.clone(),
         intrinsics: ff
@@ -444,7 +583,11 @@ pub fn ba_problem(ff: &FeedForward, dims: Dims, tracks: &BaTracks, cfg: &SfmConf
         observations: tracks
             .observations
             .iter()
-            .map(|o| BaObservation { view: o.view, point: o.point, xy: Vector2::new(colmap_round_trip(o.xy[0]), colmap_round_trip(o.xy[1])) })
+            .map(|o| BaObservation {
+                view: o.view,
+                point: o.point,
+                xy: Vector2::new(colmap_round_trip(o.xy[0]), colmap_round_trip(o.xy[1])),
+            })
             .collect(),
         model: cfg.camera_model,
         shared_camera: cfg.shared_camera,
@@ -470,7 +613,10 @@ fn initial_cameras(ff: &FeedForward, dims: Dims) -> Cameras {
         .iter()
         .map(|k| Matrix3::new(k[(0, 0)], 0.0, cx, 0.0, k[(1, 1)], cy, 0.0, 0.0, 1.0))
         .collect();
-    Cameras { cam_from_world: ff.cameras.cam_from_world.clone(), intrinsics }
+    Cameras {
+        cam_from_world: ff.cameras.cam_from_world.clone(),
+        intrinsics,
+    }
 }
 
 /// Output cameras, BA summary and, when the BA succeeded, its refined points (one per
@@ -501,7 +647,10 @@ fn run_ba(ff: &FeedForward, dims: Dims, tracks: &BaTracks, cfg: &SfmConfig) -> R
     summary.final_cost = report.final_cost;
     summary.iterations = report.iterations;
     summary.message = report.message.clone();
-    let cams = Cameras { cam_from_world: report.cam_from_world, intrinsics: report.intrinsics };
+    let cams = Cameras {
+        cam_from_world: report.cam_from_world,
+        intrinsics: report.intrinsics,
+    };
     if report.success && cams.is_finite() {
         summary.success = true;
         Ok((cams, summary, Some(report.points)))

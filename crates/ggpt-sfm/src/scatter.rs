@@ -62,22 +62,39 @@ pub type ObservationTarget = (Option<(usize, bool)>, usize);
 /// Target pixel (flat `n*h*w + y*w + x`) of every observation of every kept track, in the
 /// official order: views in order, then tracks in ascending id; `None` for dropped observations.
 /// Also returns the index into `dlt.tracks` of each observation's track.
-pub fn observation_targets(corr: &Correspondences, vis: &[bool], dlt: &DltOutput, opts: &ScatterOptions) -> Result<Vec<ObservationTarget>> {
+pub fn observation_targets(
+    corr: &Correspondences,
+    vis: &[bool],
+    dlt: &DltOutput,
+    opts: &ScatterOptions,
+) -> Result<Vec<ObservationTarget>> {
     corr.validate()?;
     let n = corr.dims.n;
     let (h, w) = (corr.dims.h, corr.dims.w);
     let hw = h * w;
     let nt = n * hw;
     if vis.len() != n * nt {
-        return Err(SfmError::Shape(format!("scatter: visibility of {} entries, expected {}", vis.len(), n * nt)));
+        return Err(SfmError::Shape(format!(
+            "scatter: visibility of {} entries, expected {}",
+            vis.len(),
+            n * nt
+        )));
     }
-    let kept: Vec<usize> = dlt.tracks.iter().enumerate().filter(|(_, t)| t.status == DltStatus::Kept).map(|(i, _)| i).collect();
+    let kept: Vec<usize> = dlt
+        .tracks
+        .iter()
+        .enumerate()
+        .filter(|(_, t)| t.status == DltStatus::Kept)
+        .map(|(i, _)| i)
+        .collect();
     let mut out = Vec::new();
     for t in 0..n {
         for &ti in &kept {
             let j = dlt.tracks[ti].track;
             if j >= nt {
-                return Err(SfmError::Shape(format!("scatter: track id {j} out of range (N*h*w = {nt})")));
+                return Err(SfmError::Shape(format!(
+                    "scatter: track id {j} out of range (N*h*w = {nt})"
+                )));
             }
             if !vis[t * nt + j] {
                 continue;
@@ -101,29 +118,56 @@ pub fn observation_targets(corr: &Correspondences, vis: &[bool], dlt: &DltOutput
 /// Views are processed in parallel (rayon): an observation in view `t` only writes pixels of view
 /// `t`, and within a view the tracks are visited in ascending id, so every pixel accumulates its
 /// points in the official order ([`observation_targets`]) whatever the thread count.
-pub fn scatter(corr: &Correspondences, vis: &[bool], dlt: &DltOutput, opts: &ScatterOptions) -> Result<ScatterResult> {
+pub fn scatter(
+    corr: &Correspondences,
+    vis: &[bool],
+    dlt: &DltOutput,
+    opts: &ScatterOptions,
+) -> Result<ScatterResult> {
     corr.validate()?;
     let n = corr.dims.n;
     let (h, w) = (corr.dims.h, corr.dims.w);
     let hw = h * w;
     let nt = n * hw;
     if vis.len() != n * nt {
-        return Err(SfmError::Shape(format!("scatter: visibility of {} entries, expected {}", vis.len(), n * nt)));
+        return Err(SfmError::Shape(format!(
+            "scatter: visibility of {} entries, expected {}",
+            vis.len(),
+            n * nt
+        )));
     }
-    let kept: Vec<&crate::dlt::DltTrack> = dlt.tracks.iter().filter(|t| t.status == DltStatus::Kept).collect();
+    let kept: Vec<&crate::dlt::DltTrack> = dlt
+        .tracks
+        .iter()
+        .filter(|t| t.status == DltStatus::Kept)
+        .collect();
     if let Some(t) = kept.iter().find(|t| t.track >= nt) {
-        return Err(SfmError::Shape(format!("scatter: track id {} out of range (N*h*w = {nt})", t.track)));
+        return Err(SfmError::Shape(format!(
+            "scatter: track id {} out of range (N*h*w = {nt})",
+            t.track
+        )));
     }
     let px = corr.dims.pixels();
     let mut points = vec![0f32; 3 * px];
     let mut reproj = vec![0f32; px];
     let mut count = vec![0u32; px];
     if px == 0 {
-        return Ok(ScatterResult { points, mask: Vec::new(), count, reproj, observations: 0, clamped: 0, dropped: 0 });
+        return Ok(ScatterResult {
+            points,
+            mask: Vec::new(),
+            count,
+            reproj,
+            observations: 0,
+            clamped: 0,
+            dropped: 0,
+        });
     }
     // compact copy of the kept tracks (id, point, reprojection error): every view reads it once
     let kept_ids: Vec<usize> = kept.iter().map(|t| t.track).collect();
-    let kept_vals: Vec<[f64; 4]> = kept.iter().map(|t| [t.point[0], t.point[1], t.point[2], t.reproj_mean]).collect();
+    let kept_vals: Vec<[f64; 4]> = kept
+        .iter()
+        .map(|t| [t.point[0], t.point[1], t.point[2], t.reproj_mean])
+        .collect();
     // per view: (observations, clamped, dropped)
     let stats: Vec<(usize, usize, usize)> = points
         .par_chunks_mut(3 * hw)
@@ -140,7 +184,10 @@ pub fn scatter(corr: &Correspondences, vis: &[bool], dlt: &DltOutput, opts: &Sca
                 if !vis_t[j] {
                     continue;
                 }
-                let target = match (pixel_index(m_t[2 * j], w, opts.drop_outside), pixel_index(m_t[2 * j + 1], h, opts.drop_outside)) {
+                let target = match (
+                    pixel_index(m_t[2 * j], w, opts.drop_outside),
+                    pixel_index(m_t[2 * j + 1], h, opts.drop_outside),
+                ) {
                     (Some((x, ox)), Some((y, oy))) => Some((y * w + x, ox || oy)),
                     _ => None,
                 };
@@ -168,9 +215,19 @@ pub fn scatter(corr: &Correspondences, vis: &[bool], dlt: &DltOutput, opts: &Sca
             (observations, clamped, dropped)
         })
         .collect();
-    let (observations, clamped, dropped) = stats.iter().fold((0, 0, 0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2));
+    let (observations, clamped, dropped) = stats
+        .iter()
+        .fold((0, 0, 0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2));
     let mask = count.iter().map(|&c| c > 0).collect();
-    Ok(ScatterResult { points, mask, count, reproj, observations, clamped, dropped })
+    Ok(ScatterResult {
+        points,
+        mask,
+        count,
+        reproj,
+        observations,
+        clamped,
+        dropped,
+    })
 }
 
 #[cfg(test)]
@@ -192,7 +249,15 @@ mod tests {
     }
 
     fn track(j: usize, p: [f64; 3], status: DltStatus) -> DltTrack {
-        DltTrack { track: j, num_views: 2, point: p, w: 1.0, reproj_mean: 0.5, max_angle_deg: 10.0, status }
+        DltTrack {
+            track: j,
+            num_views: 2,
+            point: p,
+            w: 1.0,
+            reproj_mean: 0.5,
+            max_angle_deg: 10.0,
+            status,
+        }
     }
 
     #[test]
@@ -200,7 +265,12 @@ mod tests {
         // N = 2, h = 1, w = 3.
         let dims = Dims { n: 2, h: 1, w: 3 };
         let e = 12;
-        let mut corr = Correspondences { dims, matches: vec![0.0; 2 * e], scores: vec![1.0; e], cycle: vec![0.0; e] };
+        let mut corr = Correspondences {
+            dims,
+            matches: vec![0.0; 2 * e],
+            scores: vec![1.0; e],
+            cycle: vec![0.0; e],
+        };
         corr.apply_diagonal();
         // track 0 (view 0, pixel 0) lands in view 1 at x = 1.5 -> 2; track 1 (view 0 pixel 1) at x = 7 -> clamped 2
         let i0 = corr.idx(1, 0, 0);
@@ -256,12 +326,27 @@ mod tests {
         let vis: Vec<bool> = (0..e).map(|_| rng.random_bool(0.6)).collect();
         let tracks = (0..nt)
             .map(|j| {
-                let p = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(1.0..3.0)];
-                track(j, p, if rng.random_bool(0.8) { DltStatus::Kept } else { DltStatus::RejectReproj })
+                let p = [
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(1.0..3.0),
+                ];
+                track(
+                    j,
+                    p,
+                    if rng.random_bool(0.8) {
+                        DltStatus::Kept
+                    } else {
+                        DltStatus::RejectReproj
+                    },
+                )
             })
             .collect();
         let dlt = DltOutput { tracks };
-        for opts in [ScatterOptions::default(), ScatterOptions { drop_outside: true }] {
+        for opts in [
+            ScatterOptions::default(),
+            ScatterOptions { drop_outside: true },
+        ] {
             let r = scatter(&corr, &vis, &dlt, &opts).unwrap();
             let px = dims.pixels();
             let (mut sum, mut cnt) = (vec![0f64; 3 * px], vec![0u32; px]);
@@ -282,7 +367,11 @@ mod tests {
             assert_eq!(dropped > 0, opts.drop_outside);
             for p in 0..px {
                 for a in 0..3 {
-                    let want = if cnt[p] > 0 { (sum[3 * p + a] / cnt[p] as f64) as f32 } else { 0.0 };
+                    let want = if cnt[p] > 0 {
+                        (sum[3 * p + a] / cnt[p] as f64) as f32
+                    } else {
+                        0.0
+                    };
                     assert_eq!(r.points[3 * p + a].to_bits(), want.to_bits(), "pixel {p}");
                 }
             }

@@ -47,15 +47,30 @@ impl TrackSelection {
 /// * `m_ba`: `[N, N hw]` BA visibility `[t, j]` (diagonal included, i.e. `m_ba[s, s hw + k]` true);
 /// * `rank`: `[N hw]` ranking score of each track's source pixel (higher = better; NaN ranks last);
 /// * ties are broken by the lower track index.
-pub fn select_ba_tracks(m_ba: &[bool], n: usize, hw: usize, rank: &[f32], mintrack_per_view: usize) -> Result<TrackSelection> {
+pub fn select_ba_tracks(
+    m_ba: &[bool],
+    n: usize,
+    hw: usize,
+    rank: &[f32],
+    mintrack_per_view: usize,
+) -> Result<TrackSelection> {
     let nt = n * hw;
     if m_ba.len() != n * nt {
-        return Err(SfmError::Shape(format!("track selection: BA mask of {} entries, expected {}", m_ba.len(), n * nt)));
+        return Err(SfmError::Shape(format!(
+            "track selection: BA mask of {} entries, expected {}",
+            m_ba.len(),
+            n * nt
+        )));
     }
     if rank.len() != nt {
-        return Err(SfmError::Shape(format!("track selection: ranking score of {} entries, expected N*h*w = {nt}", rank.len())));
+        return Err(SfmError::Shape(format!(
+            "track selection: ranking score of {} entries, expected N*h*w = {nt}",
+            rank.len()
+        )));
     }
-    let vis_count: Vec<u32> = (0..nt).map(|j| (0..n).filter(|&t| m_ba[t * nt + j]).count() as u32).collect();
+    let vis_count: Vec<u32> = (0..nt)
+        .map(|j| (0..n).filter(|&t| m_ba[t * nt + j]).count() as u32)
+        .collect();
     let mut sel = TrackSelection {
         selected_order: Vec::new(),
         selected_view: Vec::new(),
@@ -78,7 +93,9 @@ pub fn select_ba_tracks(m_ba: &[bool], n: usize, hw: usize, rank: &[f32], mintra
             continue;
         }
         let row = &m_ba[view * nt..(view + 1) * nt];
-        let mut cand: Vec<usize> = (0..nt).filter(|&j| row[j] && vis_count[j] >= 2 && !sel.selected[j]).collect();
+        let mut cand: Vec<usize> = (0..nt)
+            .filter(|&j| row[j] && vis_count[j] >= 2 && !sel.selected[j])
+            .collect();
         sel.num_candidates.push(cand.len() as i64);
         let cmp = |a: &usize, b: &usize| key(*b).total_cmp(&key(*a)).then(a.cmp(b));
         let take = (need as usize).min(cand.len());
@@ -109,21 +126,29 @@ pub fn select_ba_tracks(m_ba: &[bool], n: usize, hw: usize, rank: &[f32], mintra
 pub fn shi_tomasi(images: &[f32], n: usize, h: usize, w: usize) -> Result<Vec<f32>> {
     let hw = h * w;
     if images.len() != 3 * n * hw || h == 0 || w == 0 {
-        return Err(SfmError::Shape(format!("shi_tomasi: {} image values for N={n} h={h} w={w}", images.len())));
+        return Err(SfmError::Shape(format!(
+            "shi_tomasi: {} image values for N={n} h={h} w={w}",
+            images.len()
+        )));
     }
     let mut out = Vec::with_capacity(n * hw);
     let clampi = |v: isize, hi: usize| -> usize { v.clamp(0, hi as isize - 1) as usize };
     for v in 0..n {
         let img = &images[3 * v * hw..3 * (v + 1) * hw];
-        let g: Vec<f32> = img.chunks_exact(3).map(|p| 0.299f32 * p[0] + 0.587f32 * p[1] + 0.114f32 * p[2]).collect();
+        let g: Vec<f32> = img
+            .chunks_exact(3)
+            .map(|p| 0.299f32 * p[0] + 0.587f32 * p[1] + 0.114f32 * p[2])
+            .collect();
         let at = |y: isize, x: isize| -> f64 { g[clampi(y, h) * w + clampi(x, w)] as f64 };
         let mut gx = vec![0f64; hw];
         let mut gy = vec![0f64; hw];
         for y in 0..h as isize {
             for x in 0..w as isize {
                 let k = y as usize * w + x as usize;
-                gx[k] = (at(y - 1, x + 1) + 2.0 * at(y, x + 1) + at(y + 1, x + 1)) - (at(y - 1, x - 1) + 2.0 * at(y, x - 1) + at(y + 1, x - 1));
-                gy[k] = (at(y + 1, x - 1) + 2.0 * at(y + 1, x) + at(y + 1, x + 1)) - (at(y - 1, x - 1) + 2.0 * at(y - 1, x) + at(y - 1, x + 1));
+                gx[k] = (at(y - 1, x + 1) + 2.0 * at(y, x + 1) + at(y + 1, x + 1))
+                    - (at(y - 1, x - 1) + 2.0 * at(y, x - 1) + at(y + 1, x - 1));
+                gy[k] = (at(y + 1, x - 1) + 2.0 * at(y + 1, x) + at(y + 1, x + 1))
+                    - (at(y - 1, x - 1) + 2.0 * at(y - 1, x) + at(y - 1, x + 1));
             }
         }
         for y in 0..h as isize {
@@ -175,7 +200,12 @@ pub struct BaTracks {
 /// * `selected_ids`: selected track ids (any order; sorted here);
 /// * `m_ba`: `[N, N hw]` BA visibility; `corr`: the correspondences (ff pixels);
 /// * `ff_points`: `[N, h, w, 3]` feed-forward points (feed-forward frame).
-pub fn build_ba_tracks(selected_ids: &[usize], m_ba: &[bool], corr: &Correspondences, ff_points: &[f32]) -> Result<BaTracks> {
+pub fn build_ba_tracks(
+    selected_ids: &[usize],
+    m_ba: &[bool],
+    corr: &Correspondences,
+    ff_points: &[f32],
+) -> Result<BaTracks> {
     corr.validate()?;
     let n = corr.dims.n;
     let hw = corr.dims.hw();
@@ -196,9 +226,14 @@ pub fn build_ba_tracks(selected_ids: &[usize], m_ba: &[bool], corr: &Corresponde
     let mut points = Vec::with_capacity(ids.len());
     let mut excluded = 0;
     for &j in &ids {
-        let p = ff_points.get(3 * j..3 * j + 3).ok_or_else(|| SfmError::Shape(format!("track id {j} out of range")))?;
+        let p = ff_points
+            .get(3 * j..3 * j + 3)
+            .ok_or_else(|| SfmError::Shape(format!("track id {j} out of range")))?;
         let pt = Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-        if pt.iter().any(|c| !c.is_finite() || c.abs() >= MAX_BA_POINT_COORD) {
+        if pt
+            .iter()
+            .any(|c| !c.is_finite() || c.abs() >= MAX_BA_POINT_COORD)
+        {
             excluded += 1;
             continue;
         }
@@ -211,11 +246,20 @@ pub fn build_ba_tracks(selected_ids: &[usize], m_ba: &[bool], corr: &Corresponde
             if m_ba[t * nt + j] {
                 let (s, k) = (j / hw, j % hw);
                 let i = corr.idx(t, s, k);
-                observations.push(TrackObservation { view: t, point: pi, xy: [corr.matches[2 * i] as f64, corr.matches[2 * i + 1] as f64] });
+                observations.push(TrackObservation {
+                    view: t,
+                    point: pi,
+                    xy: [corr.matches[2 * i] as f64, corr.matches[2 * i + 1] as f64],
+                });
             }
         }
     }
-    Ok(BaTracks { track_ids, points, observations, excluded })
+    Ok(BaTracks {
+        track_ids,
+        points,
+        observations,
+        excluded,
+    })
 }
 
 #[cfg(test)]
@@ -263,7 +307,12 @@ mod tests {
         // flat image: 0 everywhere
         let (h, w) = (9, 9);
         let flat = vec![0.5f32; 3 * h * w];
-        assert!(shi_tomasi(&flat, 1, h, w).unwrap().iter().all(|v| v.abs() < 1e-9));
+        assert!(
+            shi_tomasi(&flat, 1, h, w)
+                .unwrap()
+                .iter()
+                .all(|v| v.abs() < 1e-9)
+        );
         // vertical edge: a > 0, b = c = 0 -> smaller eigenvalue 0
         let mut edge = vec![0.0f32; 3 * h * w];
         for y in 0..h {
@@ -317,7 +366,10 @@ mod tests {
             }
             let want = (a + c) / 2.0 - (((a - c) / 2.0).powi(2) + b * b).sqrt();
             let got = s[y0 * w + x0] as f64;
-            assert!((got - want).abs() <= 1e-4 * want.abs().max(1e-3), "({x0},{y0}): {got} vs {want}");
+            assert!(
+                (got - want).abs() <= 1e-4 * want.abs().max(1e-3),
+                "({x0},{y0}): {got} vs {want}"
+            );
         }
     }
 
@@ -325,7 +377,12 @@ mod tests {
     fn ba_tracks_layout_and_exclusion() {
         let dims = Dims { n: 2, h: 1, w: 2 };
         let e = 8;
-        let mut corr = Correspondences { dims, matches: (0..2 * e).map(|v| v as f32).collect(), scores: vec![1.0; e], cycle: vec![0.0; e] };
+        let mut corr = Correspondences {
+            dims,
+            matches: (0..2 * e).map(|v| v as f32).collect(),
+            scores: vec![1.0; e],
+            cycle: vec![0.0; e],
+        };
         corr.apply_diagonal();
         let m = vec![true; 8];
         let mut ff = vec![1.0f32; 12];
@@ -337,7 +394,10 @@ mod tests {
         assert_eq!(obs, vec![(0, 0), (0, 1), (1, 0), (1, 1)]);
         // view 0 observation of track 3 (s = 1, k = 1) = matches[t=0, s=1, k=1]
         let i = corr.idx(0, 1, 1);
-        assert_eq!(b.observations[1].xy, [corr.matches[2 * i] as f64, corr.matches[2 * i + 1] as f64]);
+        assert_eq!(
+            b.observations[1].xy,
+            [corr.matches[2 * i] as f64, corr.matches[2 * i + 1] as f64]
+        );
         // source view observation = pixel centre
         assert_eq!(b.observations[0].xy, [0.0, 0.0]);
     }

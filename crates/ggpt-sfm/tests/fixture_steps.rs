@@ -1,4 +1,5 @@
 //! Step-by-step checks against the `sfm_small` fixture (official GGPT code + pycolmap).
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
 
@@ -29,16 +30,29 @@ fn cycle_from_raw_matcher_outputs() {
         let want = fx.cycle_set(m);
         let got = &raw.sets[m];
         let (dm, im) = max_abs_diff(&got.matches, &want.matches);
-        assert!(dm <= 1e-5, "m{m} matches: max |Δ| = {dm} at {im} (ours {}, ref {})", got.matches[im], want.matches[im]);
+        assert!(
+            dm <= 1e-5,
+            "m{m} matches: max |Δ| = {dm} at {im} (ours {}, ref {})",
+            got.matches[im],
+            want.matches[im]
+        );
         let (ds, is) = max_abs_diff(&got.scores, &want.scores);
         assert!(ds <= 1e-6, "m{m} scores: max |Δ| = {ds} at {is}");
         let (dc, ic) = max_abs_diff(&got.cycle, &want.cycle);
-        assert!(dc <= 1e-4, "m{m} cycle: max |Δ| = {dc} at {ic} (ours {}, ref {})", got.cycle[ic], want.cycle[ic]);
+        assert!(
+            dc <= 1e-4,
+            "m{m} cycle: max |Δ| = {dc} at {ic} (ours {}, ref {})",
+            got.cycle[ic],
+            want.cycle[ic]
+        );
         // recomputing the cycle error from the recorded matches
         let mut re = want.clone();
         compute_cycle_errors(&mut re).unwrap();
         let (dc, ic) = max_abs_diff(&re.cycle, &want.cycle);
-        assert!(dc <= 1e-4, "m{m} cycle from recorded matches: max |Δ| = {dc} at {ic}");
+        assert!(
+            dc <= 1e-4,
+            "m{m} cycle from recorded matches: max |Δ| = {dc} at {ic}"
+        );
     }
 }
 
@@ -48,8 +62,13 @@ fn ensemble_exact() {
     let fx = open();
     let (n, hw) = (fx.dims.n, fx.dims.hw());
     let (out, sel) = ensemble(&[fx.cycle_set(0), fx.cycle_set(1)]).unwrap();
-    let want_sel = Correspondences::transpose_pairs(&fx.i64("ensemble/selected_idx"), n, hw, 1).unwrap();
-    let mism = sel.iter().zip(&want_sel).filter(|(a, b)| **a as i64 != **b).count();
+    let want_sel =
+        Correspondences::transpose_pairs(&fx.i64("ensemble/selected_idx"), n, hw, 1).unwrap();
+    let mism = sel
+        .iter()
+        .zip(&want_sel)
+        .filter(|(a, b)| **a as i64 != **b)
+        .count();
     assert_eq!(mism, 0, "selected_idx differs in {mism} entries");
     assert_eq!(out.scores, fx.f32("ensemble/pred_scores"));
     assert_eq!(out.cycle, fx.f32("ensemble/pred_cycle_error"));
@@ -63,8 +82,16 @@ fn masks_exact() {
     let (ba, dlt) = compute_masks(&fx.ensembled(), &thresholds()).unwrap();
     let want_ba = fx.bool("masks/M_ba");
     let want_dlt = fx.bool("masks/M_dlt");
-    assert_eq!(ba.iter().zip(&want_ba).filter(|(a, b)| a != b).count(), 0, "M_ba differs");
-    assert_eq!(dlt.iter().zip(&want_dlt).filter(|(a, b)| a != b).count(), 0, "M_dlt differs");
+    assert_eq!(
+        ba.iter().zip(&want_ba).filter(|(a, b)| a != b).count(),
+        0,
+        "M_ba differs"
+    );
+    assert_eq!(
+        dlt.iter().zip(&want_dlt).filter(|(a, b)| a != b).count(),
+        0,
+        "M_dlt differs"
+    );
 }
 
 /// (d) greedy track selection with `sp_scores`, and (e) the BA problem layout.
@@ -81,7 +108,12 @@ fn tracks_and_ba_problem_exact() {
     assert_eq!(sel.to_select_num, fx.i64("tracks/to_select_num"));
     assert_eq!(sel.num_candidates, fx.i64("tracks/num_candidates"));
     assert_eq!(as_i64(&sel.coverage_final), fx.i64("tracks/coverage_final"));
-    let cb: Vec<i64> = sel.coverage_before.iter().flatten().map(|&x| x as i64).collect();
+    let cb: Vec<i64> = sel
+        .coverage_before
+        .iter()
+        .flatten()
+        .map(|&x| x as i64)
+        .collect();
     assert_eq!(cb, fx.i64("tracks/coverage_before"));
     assert_eq!(sel.selected, fx.bool("tracks/selected"));
     assert_eq!(as_i64(&sel.track_ids()), fx.i64("tracks/track_ids"));
@@ -104,9 +136,17 @@ fn tracks_and_ba_problem_exact() {
     let xy = fx.f64("ba/obs_xy");
     assert_eq!(b.observations.len(), ids.len());
     for (i, o) in b.observations.iter().enumerate() {
-        assert_eq!((o.view as i64 + 1, o.point as i64 + 1), (imgs[i], ids[i]), "observation {i}");
+        assert_eq!(
+            (o.view as i64 + 1, o.point as i64 + 1),
+            (imgs[i], ids[i]),
+            "observation {i}"
+        );
         for c in 0..2 {
-            assert_eq!(((o.xy[c] + 0.5) as f32) as f64, xy[2 * i + c], "observation {i} coordinate {c}");
+            assert_eq!(
+                ((o.xy[c] + 0.5) as f32) as f64,
+                xy[2 * i + c],
+                "observation {i} coordinate {c}"
+            );
         }
     }
     // tracks_ba / mask
@@ -144,7 +184,10 @@ fn epipolar_with_recorded_cameras() {
                 for (ours, theirs) in [(*da, dis_a[b] as f64), (*db, dis_b[b] as f64)] {
                     let err = (ours - theirs).abs() / (1.0 + theirs.abs());
                     worst = worst.max(err);
-                    assert!(err < 1e-3, "pair ({i},{j}) pixel {k}: ours {ours} ref {theirs}");
+                    assert!(
+                        err < 1e-3,
+                        "pair ({i},{j}) pixel {k}: ours {ours} ref {theirs}"
+                    );
                 }
             }
         }
@@ -159,10 +202,20 @@ fn epipolar_with_recorded_cameras() {
     let emask = fx.bool("epipolar/mask");
     for i in 0..n {
         for j in 0..n {
-            let d = if i == j { None } else { Some(pair_distances(&corr, &cams, i, j).unwrap()) };
+            let d = if i == j {
+                None
+            } else {
+                Some(pair_distances(&corr, &cams, i, j).unwrap())
+            };
             for k in 0..hw {
-                let keep = d.as_ref().is_none_or(|d| (d[k].0 as f32) < 4.0 && (d[k].1 as f32) < 4.0);
-                assert_eq!(keep, emask[(i * n + j) * hw + k], "epipolar mask ({i},{j},{k})");
+                let keep = d
+                    .as_ref()
+                    .is_none_or(|d| (d[k].0 as f32) < 4.0 && (d[k].1 as f32) < 4.0);
+                assert_eq!(
+                    keep,
+                    emask[(i * n + j) * hw + k],
+                    "epipolar mask ({i},{j},{k})"
+                );
             }
         }
     }
@@ -176,7 +229,11 @@ fn dlt_and_scatter_with_recorded_cameras() {
     let corr = fx.ensembled();
     let cams = fx.ba_out_cameras();
     let vis = fx.bool("epipolar/M_dlt");
-    let opts = DltOptions { max_reproj_error: 4.0, min_tri_angle_deg: 3.0, cheirality: false };
+    let opts = DltOptions {
+        max_reproj_error: 4.0,
+        min_tri_angle_deg: 3.0,
+        cheirality: false,
+    };
     let out = triangulate_tracks(&corr, &vis, &cams, &opts).unwrap();
     let remaining = fx.bool("dlt/remaining_tracks");
     let mut rem = vec![false; nt];
@@ -190,51 +247,118 @@ fn dlt_and_scatter_with_recorded_cameras() {
     let (mut max_rel, mut ill) = (0f64, 0usize);
     let mut ill_ids = std::collections::HashSet::new();
     for (i, t) in out.tracks.iter().enumerate() {
-        assert_eq!(t.status != DltStatus::RejectW, fw[i], "filter_w of track {}", t.track);
+        assert_eq!(
+            t.status != DltStatus::RejectW,
+            fw[i],
+            "filter_w of track {}",
+            t.track
+        );
         if !fw[i] {
             continue;
         }
-        let norm = (0..3).map(|a| (xyz[3 * i + a] as f64).powi(2)).sum::<f64>().sqrt();
-        let d = (0..3).map(|a| (t.point[a] - xyz[3 * i + a] as f64).powi(2)).sum::<f64>().sqrt();
+        let norm = (0..3)
+            .map(|a| (xyz[3 * i + a] as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        let d = (0..3)
+            .map(|a| (t.point[a] - xyz[3 * i + a] as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
         if d > 1e-5 * norm.max(1.0) {
             ill += 1;
             ill_ids.insert(t.track);
-            assert!(d <= 2e-3, "track {}: point {:?} vs {:?}", t.track, t.point, &xyz[3 * i..3 * i + 3]);
+            assert!(
+                d <= 2e-3,
+                "track {}: point {:?} vs {:?}",
+                t.track,
+                t.point,
+                &xyz[3 * i..3 * i + 3]
+            );
         } else {
             max_rel = max_rel.max(d / norm.max(1.0));
         }
     }
-    eprintln!("dlt: max relative point difference {max_rel:e}, {ill} ill-conditioned tracks beyond 1e-5 (all <= 2e-3 abs)");
+    eprintln!(
+        "dlt: max relative point difference {max_rel:e}, {ill} ill-conditioned tracks beyond 1e-5 (all <= 2e-3 abs)"
+    );
     // the official f32 eigh is ill-conditioned for a few percent of the tracks (README: f64 re-solve moves points up to 1.8e-3)
-    assert!(ill * 20 <= fw.len(), "{ill} of {} tracks beyond 1e-5 relative", fw.len());
-    let after_w: Vec<_> = out.tracks.iter().filter(|t| t.status != DltStatus::RejectW).collect();
+    assert!(
+        ill * 20 <= fw.len(),
+        "{ill} of {} tracks beyond 1e-5 relative",
+        fw.len()
+    );
+    let after_w: Vec<_> = out
+        .tracks
+        .iter()
+        .filter(|t| t.status != DltStatus::RejectW)
+        .collect();
     let rmean = fx.f32("dlt/reproj_error_mean");
     let frep = fx.bool("dlt/filter_reproj");
     assert_eq!(after_w.len(), frep.len());
     for (i, t) in after_w.iter().enumerate() {
-        assert_eq!(t.status != DltStatus::RejectReproj, frep[i], "filter_reproj of track {}", t.track);
+        assert_eq!(
+            t.status != DltStatus::RejectReproj,
+            frep[i],
+            "filter_reproj of track {}",
+            t.track
+        );
         let r = rmean[i] as f64;
-        assert!((t.reproj_mean - r).abs() <= 1e-3 * (1.0 + r), "reprojection of track {}: {} vs {r}", t.track, t.reproj_mean);
+        assert!(
+            (t.reproj_mean - r).abs() <= 1e-3 * (1.0 + r),
+            "reprojection of track {}: {} vs {r}",
+            t.track,
+            t.reproj_mean
+        );
     }
-    let after_r: Vec<_> = after_w.iter().filter(|t| t.status != DltStatus::RejectReproj).collect();
+    let after_r: Vec<_> = after_w
+        .iter()
+        .filter(|t| t.status != DltStatus::RejectReproj)
+        .collect();
     let ang = fx.f32("dlt/max_angle_deg");
     let fang = fx.bool("dlt/filter_angle");
     assert_eq!(after_r.len(), fang.len());
     for (i, t) in after_r.iter().enumerate() {
-        assert_eq!(t.status == DltStatus::Kept, fang[i], "filter_angle of track {}", t.track);
-        let tol = if ill_ids.contains(&t.track) { 2e-2 } else { 1e-3 };
+        assert_eq!(
+            t.status == DltStatus::Kept,
+            fang[i],
+            "filter_angle of track {}",
+            t.track
+        );
+        let tol = if ill_ids.contains(&t.track) {
+            2e-2
+        } else {
+            1e-3
+        };
         if ang[i] > 0.82 {
-            assert!((t.max_angle_deg - ang[i] as f64).abs() < tol, "angle of track {}: {} vs {}", t.track, t.max_angle_deg, ang[i]);
+            assert!(
+                (t.max_angle_deg - ang[i] as f64).abs() < tol,
+                "angle of track {}: {} vs {}",
+                t.track,
+                t.max_angle_deg,
+                ang[i]
+            );
         }
     }
-    let kept: Vec<i64> = out.tracks.iter().filter(|t| t.status == DltStatus::Kept).map(|t| t.track as i64).collect();
-    assert_eq!(kept, fx.steps.i64("dlt/track_ids").unwrap().data);
+    let kept: Vec<i64> = out
+        .tracks
+        .iter()
+        .filter(|t| t.status == DltStatus::Kept)
+        .map(|t| t.track as i64)
+        .collect();
+    assert_eq!(kept, fx.steps.i64_tensor("dlt/track_ids").unwrap().data);
     assert_eq!(out.counts(), [7782, 7782, 7595, 7415, 7415]);
 
     // (h) scatter
     let targets = observation_targets(&corr, &vis, &out, &ScatterOptions::default()).unwrap();
-    let idx: Vec<i64> = targets.iter().map(|(t, _)| t.map(|(p, _)| p as i64).unwrap_or(-1)).collect();
-    assert_eq!(idx, fx.steps.i64("scatter/index1d").unwrap().data, "scatter/index1d");
+    let idx: Vec<i64> = targets
+        .iter()
+        .map(|(t, _)| t.map(|(p, _)| p as i64).unwrap_or(-1))
+        .collect();
+    assert_eq!(
+        idx,
+        fx.steps.i64_tensor("scatter/index1d").unwrap().data,
+        "scatter/index1d"
+    );
     let sc = scatter(&corr, &vis, &out, &ScatterOptions::default()).unwrap();
     assert_eq!(sc.clamped, 1);
     let count: Vec<f32> = sc.count.iter().map(|&c| c as f32).collect();
@@ -243,7 +367,12 @@ fn dlt_and_scatter_with_recorded_cameras() {
     let want = fx.f32("scatter/points");
     let (d, i) = max_abs_diff(&sc.points, &want);
     eprintln!("scatter: max |Δ point| = {d:e}");
-    assert!(d <= 2e-3, "scatter/points: max |Δ| = {d} at {i} (ours {}, ref {})", sc.points[i], want[i]);
+    assert!(
+        d <= 2e-3,
+        "scatter/points: max |Δ| = {d} at {i} (ours {}, ref {})",
+        sc.points[i],
+        want[i]
+    );
 }
 
 /// (h) scatter of the recorded DLT points: masks exact, points within ~1 ulp (f64 accumulation
@@ -256,7 +385,13 @@ fn scatter_of_recorded_points_ulp() {
     let vis = fx.bool("epipolar/M_dlt");
     let remaining = fx.bool("dlt/remaining_tracks");
     let xyz = fx.f32("dlt/xyz_all");
-    let kept: std::collections::HashSet<i64> = fx.steps.i64("dlt/track_ids").unwrap().data.into_iter().collect();
+    let kept: std::collections::HashSet<i64> = fx
+        .steps
+        .i64_tensor("dlt/track_ids")
+        .unwrap()
+        .data
+        .into_iter()
+        .collect();
     let tracks: Vec<DltTrack> = remaining
         .iter()
         .enumerate()
@@ -265,11 +400,19 @@ fn scatter_of_recorded_points_ulp() {
         .map(|(i, (j, _))| DltTrack {
             track: j,
             num_views: 2,
-            point: [xyz[3 * i] as f64, xyz[3 * i + 1] as f64, xyz[3 * i + 2] as f64],
+            point: [
+                xyz[3 * i] as f64,
+                xyz[3 * i + 1] as f64,
+                xyz[3 * i + 2] as f64,
+            ],
             w: 1.0,
             reproj_mean: 0.0,
             max_angle_deg: 10.0,
-            status: if kept.contains(&(j as i64)) { DltStatus::Kept } else { DltStatus::RejectAngle },
+            status: if kept.contains(&(j as i64)) {
+                DltStatus::Kept
+            } else {
+                DltStatus::RejectAngle
+            },
         })
         .collect();
     let dlt = DltOutput { tracks };
@@ -277,7 +420,8 @@ fn scatter_of_recorded_points_ulp() {
     assert_eq!(sc.mask, fx.bool("scatter/point_masks"));
     // magnitude of the summands per pixel coordinate: the official f32 sum rounds relative to them
     let mut scale = vec![0f32; sc.points.len()];
-    for (target, ti) in observation_targets(&corr, &vis, &dlt, &ScatterOptions::default()).unwrap() {
+    for (target, ti) in observation_targets(&corr, &vis, &dlt, &ScatterOptions::default()).unwrap()
+    {
         let (p, _) = target.unwrap();
         for a in 0..3 {
             scale[3 * p + a] = scale[3 * p + a].max(dlt.tracks[ti].point[a].abs() as f32);
@@ -286,6 +430,10 @@ fn scatter_of_recorded_points_ulp() {
     let want = fx.f32("scatter/points");
     for (i, (a, b)) in sc.points.iter().zip(&want).enumerate() {
         let tol = 2.0 * f32::EPSILON * scale[i].max(f32::MIN_POSITIVE);
-        assert!((a - b).abs() <= tol, "scatter/points[{i}]: ours {a} ref {b} (summand scale {})", scale[i]);
+        assert!(
+            (a - b).abs() <= tol,
+            "scatter/points[{i}]: ours {a} ref {b} (summand scale {})",
+            scale[i]
+        );
     }
 }

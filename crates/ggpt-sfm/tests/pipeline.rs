@@ -1,15 +1,16 @@
 //! Whole-pipeline tests: the `sfm_small` fixture end to end (recorded BA cameras injected, and
 //! with our own BA), the output files, and the bad-input behaviour.
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
 
 use common::synth::synth;
 use common::{check_colmap_model, fixture, max_abs_diff, open};
+use ggpt_core::io::st::StFile;
 use ggpt_sfm::input::{read_ff, read_matches};
 use ggpt_sfm::masks::Preset;
 use ggpt_sfm::output::{ColmapExport, ColmapPoints, write_outputs};
 use ggpt_sfm::pipeline::{SfmConfig, run_sfm, run_sfm_correspondences};
-use ggpt_sfm::st::StFile;
 
 fn fixture_config() -> SfmConfig {
     let mut cfg = SfmConfig::preset(Preset::Benchmark);
@@ -25,10 +26,29 @@ fn fixture_end_to_end_with_recorded_cameras() {
     let ff = read_ff(&path).unwrap();
     let m = read_matches(&path, ff.dims).unwrap();
     let cams = fx.ba_out_cameras();
-    let out = run_sfm_correspondences(&ff.ff, &ff.images, &m.sets, m.rank_scores.as_deref(), &fixture_config(), Some(&cams)).unwrap();
-    assert_eq!(out.selection.track_ids().iter().map(|&x| x as i64).collect::<Vec<_>>(), fx.i64("tracks/track_ids"));
+    let out = run_sfm_correspondences(
+        &ff.ff,
+        &ff.images,
+        &m.sets,
+        m.rank_scores.as_deref(),
+        &fixture_config(),
+        Some(&cams),
+    )
+    .unwrap();
+    assert_eq!(
+        out.selection
+            .track_ids()
+            .iter()
+            .map(|&x| x as i64)
+            .collect::<Vec<_>>(),
+        fx.i64("tracks/track_ids")
+    );
     assert_eq!(out.summary.dlt_tracks, [7782, 7782, 7595, 7415, 7415]);
-    assert_eq!(out.result.mask, fx.bool("scatter/point_masks"), "point masks");
+    assert_eq!(
+        out.result.mask,
+        fx.bool("scatter/point_masks"),
+        "point masks"
+    );
     let (d, i) = max_abs_diff(&out.result.points, &fx.f32("scatter/points"));
     assert!(d <= 2e-3, "points: max |Δ| = {d} at {i}");
     assert!(out.result.points_success && out.result.camera_success);
@@ -37,11 +57,21 @@ fn fixture_end_to_end_with_recorded_cameras() {
     let dir = tempfile::tempdir().unwrap();
     let cs = write_outputs(dir.path(), &out, &ff.images, &[], &ColmapExport::default()).unwrap();
     let st = StFile::open(&dir.path().join("sfm_dlt_outputs.safetensors")).unwrap();
-    assert_eq!(st.bool("point_masks").unwrap().data, fx.bool("scatter/point_masks"));
-    assert_eq!(st.f32("points").unwrap().shape, vec![4, 42, 56, 3]);
-    assert_eq!(st.f32("extrinsics").unwrap().data, fx.f32("ba/out_extrinsics"));
-    assert_eq!(st.f32("intrinsics").unwrap().data, fx.f32("ba/out_intrinsics"));
-    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("summary.json")).unwrap()).unwrap();
+    assert_eq!(
+        st.bool_tensor("point_masks").unwrap().data,
+        fx.bool("scatter/point_masks")
+    );
+    assert_eq!(st.f32_tensor("points").unwrap().shape, vec![4, 42, 56, 3]);
+    assert_eq!(
+        st.f32_tensor("extrinsics").unwrap().data,
+        fx.f32("ba/out_extrinsics")
+    );
+    assert_eq!(
+        st.f32_tensor("intrinsics").unwrap().data,
+        fx.f32("ba/out_intrinsics")
+    );
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["points_kept"], 7794);
 
     // COLMAP model: the recorded cameras, and the 93 BA tracks (BA skipped: triangulated from
@@ -54,59 +84,143 @@ fn fixture_end_to_end_with_recorded_cameras() {
     let (cams, _) = model.to_cameras(&sparse).unwrap();
     for v in 0..4 {
         let want = fx.ba_out_cameras();
-        assert!((cams.intrinsics[v] - want.intrinsics[v]).abs().max() < 1e-5, "view {v}: K");
-        assert!((cams.cam_from_world[v] - want.cam_from_world[v]).abs().max() < 1e-5, "view {v}: [R|t]");
+        assert!(
+            (cams.intrinsics[v] - want.intrinsics[v]).abs().max() < 1e-5,
+            "view {v}: K"
+        );
+        assert!(
+            (cams.cam_from_world[v] - want.cam_from_world[v])
+                .abs()
+                .max()
+                < 1e-5,
+            "view {v}: [R|t]"
+        );
     }
     assert!(!out.ba_points_refined);
     assert!(!cs.ba_points_refined);
     assert_eq!(cs.candidates, 93);
     assert_eq!(out.ba_points.len(), 93);
-    eprintln!("recorded cameras: {:?}; check: {} points, {} observations, max error {}, mean {}", cs, chk.points, chk.observations, chk.max_error, chk.mean_error);
+    eprintln!(
+        "recorded cameras: {:?}; check: {} points, {} observations, max error {}, mean {}",
+        cs, chk.points, chk.observations, chk.max_error, chk.mean_error
+    );
     assert_eq!(chk.points, cs.points3d);
     assert_eq!(chk.observations, cs.observations);
     assert_eq!(cs.points3d, cs.candidates - cs.dropped_points);
-    assert_eq!(cs.observations + cs.dropped_observations, 273, "every BA observation is written or counted as dropped");
+    assert_eq!(
+        cs.observations + cs.dropped_observations,
+        273,
+        "every BA observation is written or counted as dropped"
+    );
     assert_eq!(summary["colmap"]["points3d"], cs.points3d);
-    assert_eq!((cs.points3d, cs.observations, cs.dropped_points, cs.dropped_observations), (91, 267, 2, 6));
-    assert!(chk.max_error <= 4.0 + 1e-9, "max reprojection error {}", chk.max_error);
-    assert!(chk.mean_error < 1.0, "mean reprojection error {}", chk.mean_error);
+    assert_eq!(
+        (
+            cs.points3d,
+            cs.observations,
+            cs.dropped_points,
+            cs.dropped_observations
+        ),
+        (91, 267, 2, 6)
+    );
+    assert!(
+        chk.max_error <= 4.0 + 1e-9,
+        "max reprojection error {}",
+        chk.max_error
+    );
+    assert!(
+        chk.mean_error < 1.0,
+        "mean reprojection error {}",
+        chk.mean_error
+    );
     assert_source_colours(&chk.model, &out.ba_tracks.track_ids, &ff.images, 42, 56);
 
     // --colmap-points dlt: every kept DLT track (the earlier content); none: cameras only
     let d2 = tempfile::tempdir().unwrap();
-    let cs = write_outputs(d2.path(), &out, &ff.images, &[], &ColmapExport { points: ColmapPoints::Dlt, ..ColmapExport::default() }).unwrap();
+    let cs = write_outputs(
+        d2.path(),
+        &out,
+        &ff.images,
+        &[],
+        &ColmapExport {
+            points: ColmapPoints::Dlt,
+            ..ColmapExport::default()
+        },
+    )
+    .unwrap();
     let chk = check_colmap_model(&d2.path().join("sparse/0"), true);
     assert_eq!((cs.points3d, chk.points), (7415, 7415));
     assert_eq!(cs.observations, chk.observations);
     assert!(chk.max_error < 4.0 * 4.0, "DLT max error {}", chk.max_error);
-    let cs = write_outputs(d2.path(), &out, &ff.images, &[], &ColmapExport { points: ColmapPoints::None, ..ColmapExport::default() }).unwrap();
+    let cs = write_outputs(
+        d2.path(),
+        &out,
+        &ff.images,
+        &[],
+        &ColmapExport {
+            points: ColmapPoints::None,
+            ..ColmapExport::default()
+        },
+    )
+    .unwrap();
     let chk = check_colmap_model(&d2.path().join("sparse/0"), false);
-    assert_eq!((cs.points3d, chk.points, chk.observations, chk.model.images.len()), (0, 0, 0, 4));
+    assert_eq!(
+        (
+            cs.points3d,
+            chk.points,
+            chk.observations,
+            chk.model.images.len()
+        ),
+        (0, 0, 0, 4)
+    );
 }
 
 /// Every written BA point whose observation in its track's source view is still the source pixel
 /// centre (`(x + 0.5, y + 0.5)` in that image) carries the colour of that pixel; at least 90 % of
 /// the points are checked this way.
-fn assert_source_colours(model: &ggpt_core::io::colmap::ColmapModel, track_ids: &[usize], images: &[f32], h: usize, w: usize) {
+fn assert_source_colours(
+    model: &ggpt_core::io::colmap::ColmapModel,
+    track_ids: &[usize],
+    images: &[f32],
+    h: usize,
+    w: usize,
+) {
     let hw = h * w;
     let mut checked = 0;
     for p in &model.points3d {
         let found = p.track.iter().find_map(|&(iid, idx)| {
             let xy = model.images[iid as usize - 1].points2d[idx as usize].xy;
             let (x, y) = (xy[0] - 0.5, xy[1] - 0.5);
-            if x.fract() != 0.0 || y.fract() != 0.0 || x < 0.0 || y < 0.0 || x >= w as f64 || y >= h as f64 {
+            if x.fract() != 0.0
+                || y.fract() != 0.0
+                || x < 0.0
+                || y < 0.0
+                || x >= w as f64
+                || y >= h as f64
+            {
                 return None;
             }
             let j = (iid as usize - 1) * hw + y as usize * w + x as usize;
             track_ids.binary_search(&j).ok().map(|_| j)
         });
         if let Some(j) = found {
-            let rgb: Vec<u8> = images[3 * j..3 * j + 3].iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
-            assert_eq!(p.rgb.to_vec(), rgb, "point {}: colour vs source pixel of track {j}", p.id);
+            let rgb: Vec<u8> = images[3 * j..3 * j + 3]
+                .iter()
+                .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+                .collect();
+            assert_eq!(
+                p.rgb.to_vec(),
+                rgb,
+                "point {}: colour vs source pixel of track {j}",
+                p.id
+            );
             checked += 1;
         }
     }
-    assert!(checked * 10 >= model.points3d.len() * 9, "only {checked} of {} points have their source observation", model.points3d.len());
+    assert!(
+        checked * 10 >= model.points3d.len() * 9,
+        "only {checked} of {} points have their source observation",
+        model.points3d.len()
+    );
 }
 
 /// End to end with our BA: cameras differ from the official ones by solver path / gauge, so masks
@@ -117,29 +231,60 @@ fn fixture_end_to_end_with_our_ba() {
     let path = fixture("inputs.safetensors");
     let ff = read_ff(&path).unwrap();
     let m = read_matches(&path, ff.dims).unwrap();
-    let out = run_sfm_correspondences(&ff.ff, &ff.images, &m.sets, m.rank_scores.as_deref(), &fixture_config(), None).unwrap();
+    let out = run_sfm_correspondences(
+        &ff.ff,
+        &ff.images,
+        &m.sets,
+        m.rank_scores.as_deref(),
+        &fixture_config(),
+        None,
+    )
+    .unwrap();
     let s = &out.summary;
     assert!(s.ba.success, "{}", s.ba.message);
     assert_eq!(s.ba.points, 93);
     assert_eq!(s.ba.observations, 273);
     // focal close to the official refined focal (upstream: [49.5222, 49.8875])
     let k = &out.result.cameras.intrinsics[0];
-    eprintln!("ours: fx {} fy {}; cost {} -> {}", k[(0, 0)], k[(1, 1)], s.ba.initial_cost, s.ba.final_cost);
+    eprintln!(
+        "ours: fx {} fy {}; cost {} -> {}",
+        k[(0, 0)],
+        k[(1, 1)],
+        s.ba.initial_cost,
+        s.ba.final_cost
+    );
     assert!((k[(0, 0)] - 49.5222).abs() < 0.1 && (k[(1, 1)] - 49.8875).abs() < 0.1);
     let want_mask = fx.bool("scatter/point_masks");
-    let diff = out.result.mask.iter().zip(&want_mask).filter(|(a, b)| a != b).count();
+    let diff = out
+        .result
+        .mask
+        .iter()
+        .zip(&want_mask)
+        .filter(|(a, b)| a != b)
+        .count();
     let want_pts = fx.f32("scatter/points");
     // the two BAs fix the gauge differently: compare after a least-squares similarity
-    let pt = |v: &[f32], p: usize| nalgebra::Point3::new(v[3 * p] as f64, v[3 * p + 1] as f64, v[3 * p + 2] as f64);
-    let common: Vec<usize> = (0..want_mask.len()).filter(|&p| out.result.mask[p] && want_mask[p]).collect();
+    let pt = |v: &[f32], p: usize| {
+        nalgebra::Point3::new(v[3 * p] as f64, v[3 * p + 1] as f64, v[3 * p + 2] as f64)
+    };
+    let common: Vec<usize> = (0..want_mask.len())
+        .filter(|&p| out.result.mask[p] && want_mask[p])
+        .collect();
     let src: Vec<_> = common.iter().map(|&p| pt(&out.result.points, p)).collect();
     let tgt: Vec<_> = common.iter().map(|&p| pt(&want_pts, p)).collect();
     let sim = ggpt_core::sim3::umeyama(&src, &tgt).unwrap();
     eprintln!("gauge similarity: scale {}", sim.scale);
-    let mut errs: Vec<f32> = src.iter().zip(&tgt).map(|(a, b)| (sim.apply(a) - b).norm() as f32).collect();
+    let mut errs: Vec<f32> = src
+        .iter()
+        .zip(&tgt)
+        .map(|(a, b)| (sim.apply(a) - b).norm() as f32)
+        .collect();
     errs.sort_by(f32::total_cmp);
     let med = errs[errs.len() / 2];
-    eprintln!("our BA: {diff} mask differences of {}, median point difference {med:e}", want_mask.len());
+    eprintln!(
+        "our BA: {diff} mask differences of {}, median point difference {med:e}",
+        want_mask.len()
+    );
     assert!(diff <= want_mask.len() / 50, "{diff} mask differences");
     assert!(med < 5e-3, "median point difference {med}");
 
@@ -150,11 +295,25 @@ fn fixture_end_to_end_with_our_ba() {
     let cs = write_outputs(dir.path(), &out, &ff.images, &[], &ColmapExport::default()).unwrap();
     let chk = check_colmap_model(&dir.path().join("sparse/0"), false);
     assert_eq!(cs.candidates, 93);
-    assert_eq!((chk.points, chk.observations), (cs.points3d, cs.observations));
-    assert_eq!((cs.points3d, cs.observations, cs.dropped_observations), (93, 271, 2));
+    assert_eq!(
+        (chk.points, chk.observations),
+        (cs.points3d, cs.observations)
+    );
+    assert_eq!(
+        (cs.points3d, cs.observations, cs.dropped_observations),
+        (93, 271, 2)
+    );
     let (de, dp) = common::compare_with_ceres(&fx, &chk, "ba_upstream");
-    eprintln!("our BA: {cs:?}; max |Δ observation error| vs Ceres {de:e} px, max BA point difference after Sim(3) {dp:e} (relative); check max error {} mean {}", chk.max_error, chk.mean_error);
-    assert!(chk.max_error <= 4.0 && chk.mean_error < 0.5, "{} / {}", chk.max_error, chk.mean_error);
+    eprintln!(
+        "our BA: {cs:?}; max |Δ observation error| vs Ceres {de:e} px, max BA point difference after Sim(3) {dp:e} (relative); check max error {} mean {}",
+        chk.max_error, chk.mean_error
+    );
+    assert!(
+        chk.max_error <= 4.0 && chk.mean_error < 0.5,
+        "{} / {}",
+        chk.max_error,
+        chk.mean_error
+    );
     assert_source_colours(&chk.model, &out.ba_tracks.track_ids, &ff.images, 42, 56);
 }
 
@@ -163,7 +322,14 @@ fn synthetic_scene_recovers_geometry() {
     let s = synth(3, 24, 32);
     let mut cfg = SfmConfig::preset(Preset::Benchmark);
     cfg.thresholds.mintrack_per_view = 128;
-    let out = run_sfm(&s.ff, &s.images, s.dims, std::slice::from_ref(&s.matches), &cfg).unwrap();
+    let out = run_sfm(
+        &s.ff,
+        &s.images,
+        s.dims,
+        std::slice::from_ref(&s.matches),
+        &cfg,
+    )
+    .unwrap();
     assert!(out.result.camera_success && out.result.points_success);
     assert_eq!(out.summary.ranking, "shi-tomasi");
     let k = out.result.cameras.intrinsics[0];
@@ -172,16 +338,40 @@ fn synthetic_scene_recovers_geometry() {
     // only up to the gauge the BA fixes from the perturbed feed-forward cameras)
     // (per track: the DLT point vs the GT point of its source pixel; per-pixel averages mix
     // tracks up to half a pixel apart)
-    let kept: Vec<_> = out.dlt.tracks.iter().filter(|t| t.status == ggpt_sfm::dlt::DltStatus::Kept).collect();
-    let src: Vec<_> = kept.iter().map(|t| nalgebra::Point3::from(t.point)).collect();
-    let tgt: Vec<_> = kept.iter().map(|t| nalgebra::Point3::from(s.gt_points[t.track])).collect();
+    let kept: Vec<_> = out
+        .dlt
+        .tracks
+        .iter()
+        .filter(|t| t.status == ggpt_sfm::dlt::DltStatus::Kept)
+        .collect();
+    let src: Vec<_> = kept
+        .iter()
+        .map(|t| nalgebra::Point3::from(t.point))
+        .collect();
+    let tgt: Vec<_> = kept
+        .iter()
+        .map(|t| nalgebra::Point3::from(s.gt_points[t.track]))
+        .collect();
     let sim = ggpt_core::sim3::umeyama(&src, &tgt).unwrap();
-    let mut errs: Vec<f64> = src.iter().zip(&tgt).map(|(a, b)| (sim.apply(a) - b).norm()).collect();
+    let mut errs: Vec<f64> = src
+        .iter()
+        .zip(&tgt)
+        .map(|(a, b)| (sim.apply(a) - b).norm())
+        .collect();
     errs.sort_by(f64::total_cmp);
     let med = errs[errs.len() / 2];
-    eprintln!("synthetic: focal {} (gt {f_gt}, ff {}), {} pixels, median point error {med}", k[(0, 0)], s.ff.cameras.intrinsics[0][(0, 0)], out.summary.points_kept);
+    eprintln!(
+        "synthetic: focal {} (gt {f_gt}, ff {}), {} pixels, median point error {med}",
+        k[(0, 0)],
+        s.ff.cameras.intrinsics[0][(0, 0)],
+        out.summary.points_kept
+    );
     assert!(out.summary.points_kept > 500);
-    assert!((k[(0, 0)] - f_gt).abs() < 0.01 * f_gt, "focal {} vs {f_gt}", k[(0, 0)]);
+    assert!(
+        (k[(0, 0)] - f_gt).abs() < 0.01 * f_gt,
+        "focal {} vs {f_gt}",
+        k[(0, 0)]
+    );
     assert!(med < 0.02, "median DLT point error {med}");
     assert!(out.result.points.iter().all(|v| v.is_finite()));
 }
@@ -199,11 +389,20 @@ fn synthetic_scene_with_gt_cameras_is_exact() {
         .tracks
         .iter()
         .filter(|t| t.status == ggpt_sfm::dlt::DltStatus::Kept)
-        .map(|t| (0..3).map(|a| (t.point[a] - s.gt_points[t.track][a]).powi(2)).sum::<f64>().sqrt())
+        .map(|t| {
+            (0..3)
+                .map(|a| (t.point[a] - s.gt_points[t.track][a]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        })
         .collect();
     errs.sort_by(f64::total_cmp);
     let med = errs[errs.len() / 2];
-    eprintln!("synthetic with GT cameras: {} tracks, median point error {med}, max {}", errs.len(), errs[errs.len() - 1]);
+    eprintln!(
+        "synthetic with GT cameras: {} tracks, median point error {med}, max {}",
+        errs.len(),
+        errs[errs.len() - 1]
+    );
     assert!(errs.len() > 1500);
     assert!(med < 2e-3, "median DLT point error {med}");
 }
@@ -213,8 +412,14 @@ fn synthetic_scene_with_gt_cameras_is_exact() {
 
 fn assert_finite(out: &ggpt_sfm::pipeline::SfmOutput) {
     assert!(out.result.cameras.is_finite(), "non-finite cameras");
-    assert!(out.result.points.iter().all(|v| v.is_finite()), "non-finite points");
-    assert!(out.dlt_reproj.iter().all(|v| v.is_finite()), "non-finite dlt_reproj");
+    assert!(
+        out.result.points.iter().all(|v| v.is_finite()),
+        "non-finite points"
+    );
+    assert!(
+        out.dlt_reproj.iter().all(|v| v.is_finite()),
+        "non-finite dlt_reproj"
+    );
 }
 
 #[test]
@@ -230,16 +435,33 @@ fn bad_input_shape_mismatch_between_matches_and_images() {
     let e = run_sfm(&s.ff, &s.images, s.dims, std::slice::from_ref(&wrong), &cfg).unwrap_err();
     assert!(e.to_string().contains("shape mismatch"), "{e}");
     // images of another size than the matches
-    let e = run_sfm(&s.ff, &s.images[..30], s.dims, std::slice::from_ref(&s.matches), &cfg).unwrap_err();
+    let e = run_sfm(
+        &s.ff,
+        &s.images[..30],
+        s.dims,
+        std::slice::from_ref(&s.matches),
+        &cfg,
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("images"), "{e}");
     // matches of a 3-view scene with 4-view feed-forward outputs
     let big = synth(4, 12, 16);
-    let e = run_sfm(&big.ff, &big.images, big.dims, std::slice::from_ref(&s.matches), &cfg).unwrap_err();
+    let e = run_sfm(
+        &big.ff,
+        &big.images,
+        big.dims,
+        std::slice::from_ref(&s.matches),
+        &cfg,
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("shape mismatch"), "{e}");
     // files: the fixture's matches read for another resolution / number of views
     let fx_path = fixture("inputs.safetensors");
     let e = read_matches(&fx_path, ggpt_core::Dims { n: 4, h: 42, w: 57 }).unwrap_err();
-    assert!(e.to_string().contains("sp_scores") && e.to_string().contains("inputs.safetensors"), "{e}");
+    assert!(
+        e.to_string().contains("sp_scores") && e.to_string().contains("inputs.safetensors"),
+        "{e}"
+    );
     let e = read_matches(&fx_path, ggpt_core::Dims { n: 3, h: 42, w: 56 }).unwrap_err();
     assert!(e.to_string().contains("N=3"), "{e}");
 }
@@ -251,8 +473,13 @@ fn bad_input_all_zero_scores() {
     for v in [0.0, f32::NAN, 1e-6] {
         let mut zero = s.matches.clone();
         zero.pred_scores.iter_mut().for_each(|x| *x = v);
-        let Err(e) = run_sfm(&s.ff, &s.images, s.dims, std::slice::from_ref(&zero), &cfg) else { panic!("score {v}: no error") };
-        assert!(e.to_string().contains("all matcher scores are zero"), "score {v}: {e}");
+        let Err(e) = run_sfm(&s.ff, &s.images, s.dims, std::slice::from_ref(&zero), &cfg) else {
+            panic!("score {v}: no error")
+        };
+        assert!(
+            e.to_string().contains("all matcher scores are zero"),
+            "score {v}: {e}"
+        );
     }
 }
 
@@ -286,16 +513,43 @@ fn bad_input_nan_cameras() {
     let cfg = SfmConfig::preset(Preset::Benchmark);
     let mut ff = s.ff.clone();
     ff.cameras.cam_from_world[1][(0, 3)] = f64::NAN;
-    let e = run_sfm(&ff, &s.images, s.dims, std::slice::from_ref(&s.matches), &cfg).unwrap_err();
-    assert!(e.to_string().contains("view 1") && e.to_string().contains("non-finite"), "{e}");
+    let e = run_sfm(
+        &ff,
+        &s.images,
+        s.dims,
+        std::slice::from_ref(&s.matches),
+        &cfg,
+    )
+    .unwrap_err();
+    assert!(
+        e.to_string().contains("view 1") && e.to_string().contains("non-finite"),
+        "{e}"
+    );
     let mut ff = s.ff.clone();
     ff.cameras.intrinsics[2][(1, 1)] = f64::INFINITY;
-    let e = run_sfm(&ff, &s.images, s.dims, std::slice::from_ref(&s.matches), &cfg).unwrap_err();
+    let e = run_sfm(
+        &ff,
+        &s.images,
+        s.dims,
+        std::slice::from_ref(&s.matches),
+        &cfg,
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("view 2"), "{e}");
     let mut ff = s.ff.clone();
     ff.cameras.intrinsics[0][(0, 0)] = 0.0;
-    let e = run_sfm(&ff, &s.images, s.dims, std::slice::from_ref(&s.matches), &cfg).unwrap_err();
-    assert!(e.to_string().contains("view 0") && e.to_string().contains("positive"), "{e}");
+    let e = run_sfm(
+        &ff,
+        &s.images,
+        s.dims,
+        std::slice::from_ref(&s.matches),
+        &cfg,
+    )
+    .unwrap_err();
+    assert!(
+        e.to_string().contains("view 0") && e.to_string().contains("positive"),
+        "{e}"
+    );
     // cameras given to replace the BA
     let mut cams = s.gt.clone();
     cams.cam_from_world[0][(2, 2)] = f64::NAN;
@@ -334,7 +588,14 @@ fn bad_input_nan_matches_points_and_images_are_skipped() {
 fn bad_input_single_view() {
     let cfg = SfmConfig::preset(Preset::Benchmark);
     let one = synth(1, 12, 16);
-    let e = run_sfm(&one.ff, &one.images, one.dims, std::slice::from_ref(&one.matches), &cfg).unwrap_err();
+    let e = run_sfm(
+        &one.ff,
+        &one.images,
+        one.dims,
+        std::slice::from_ref(&one.matches),
+        &cfg,
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("at least 2 views"), "{e}");
 }
 

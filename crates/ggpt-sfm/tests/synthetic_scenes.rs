@@ -3,6 +3,7 @@
 //! feed-forward cameras', and the DLT points are far more accurate than the feed-forward points
 //! (pipeline.md §10 metrics from `ggpt_core::metrics`, the ones `ggpt-eval` reports).
 //! The full-resolution numbers are in docs/sfm.md ("Accuracy on synthetic scenes").
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 use ggpt_core::metrics::{EVAL_ALIGN_MAX_ERROR, camera_metrics, point_metrics};
 use ggpt_sfm::masks::Preset;
@@ -12,20 +13,56 @@ use rand::SeedableRng;
 use rand_pcg::Pcg64;
 
 fn check(kind: SceneKind, views: usize, width: usize, height: usize, seed: u64) {
-    let cfg = SynthConfig { kind, views, width, height, seed, ..SynthConfig::default() };
+    let cfg = SynthConfig {
+        kind,
+        views,
+        width,
+        height,
+        seed,
+        ..SynthConfig::default()
+    };
     let scene = generate(&cfg).unwrap().scene;
     let ff = scene.ff.as_ref().unwrap();
     let gt = scene.gt.as_ref().unwrap();
-    let out = run_sfm(ff, &scene.images, scene.dims, &scene.matches, &SfmConfig::preset(Preset::Benchmark)).unwrap();
+    let out = run_sfm(
+        ff,
+        &scene.images,
+        scene.dims,
+        &scene.matches,
+        &SfmConfig::preset(Preset::Benchmark),
+    )
+    .unwrap();
     let r = &out.result;
-    assert!(r.camera_success, "{kind:?} {views} views: BA failed: {}", out.summary.ba.message);
+    assert!(
+        r.camera_success,
+        "{kind:?} {views} views: BA failed: {}",
+        out.summary.ba.message
+    );
     assert!(r.points_success);
     let cam_ff = camera_metrics(&ff.cameras, &gt.cameras).unwrap();
     let cam_sfm = camera_metrics(&r.cameras, &gt.cameras).unwrap();
     let mut rng = Pcg64::seed_from_u64(42);
-    let pts_ff = point_metrics(&ff.points, &gt.points, &gt.mask, None, EVAL_ALIGN_MAX_ERROR, &mut rng).unwrap().metrics;
+    let pts_ff = point_metrics(
+        &ff.points,
+        &gt.points,
+        &gt.mask,
+        None,
+        EVAL_ALIGN_MAX_ERROR,
+        &mut rng,
+    )
+    .unwrap()
+    .metrics;
     let mut rng = Pcg64::seed_from_u64(42);
-    let pts_sfm = point_metrics(&r.points, &gt.points, &gt.mask, Some(&r.mask), EVAL_ALIGN_MAX_ERROR, &mut rng).unwrap().metrics;
+    let pts_sfm = point_metrics(
+        &r.points,
+        &gt.points,
+        &gt.mask,
+        Some(&r.mask),
+        EVAL_ALIGN_MAX_ERROR,
+        &mut rng,
+    )
+    .unwrap()
+    .metrics;
     eprintln!(
         "{kind:?} {views} views seed {seed}: camera AUC@5 ff {:.1} -> sfm {:.1} (AUC@1 {:.1} -> {:.1}, FoV err {:.2} -> {:.2} deg); \
          points AUC@1cm ff {:.1} -> sfm {:.1} (AUC@5 {:.1} -> {:.1}, ratio {:.1} %)",
@@ -41,11 +78,35 @@ fn check(kind: SceneKind, views: usize, width: usize, height: usize, seed: u64) 
         pts_sfm.auc_5,
         100.0 * pts_sfm.ratio.unwrap_or(0.0)
     );
-    assert!(cam_sfm.auc_5 >= cam_ff.auc_5, "{kind:?} {views} views: camera AUC@5 {} < ff {}", cam_sfm.auc_5, cam_ff.auc_5);
-    assert!(cam_sfm.auc_1 >= cam_ff.auc_1, "{kind:?} {views} views: camera AUC@1 {} < ff {}", cam_sfm.auc_1, cam_ff.auc_1);
-    assert!(cam_sfm.fov_error_deg <= cam_ff.fov_error_deg, "{kind:?} {views} views: FoV error {} > ff {}", cam_sfm.fov_error_deg, cam_ff.fov_error_deg);
-    assert!(pts_sfm.auc_1 > pts_ff.auc_1, "{kind:?} {views} views: point AUC@1cm {} <= ff {}", pts_sfm.auc_1, pts_ff.auc_1);
-    assert!(pts_sfm.ratio.unwrap_or(0.0) > 0.3, "{kind:?} {views} views: only {:?} of the GT pixels have a DLT point", pts_sfm.ratio);
+    assert!(
+        cam_sfm.auc_5 >= cam_ff.auc_5,
+        "{kind:?} {views} views: camera AUC@5 {} < ff {}",
+        cam_sfm.auc_5,
+        cam_ff.auc_5
+    );
+    assert!(
+        cam_sfm.auc_1 >= cam_ff.auc_1,
+        "{kind:?} {views} views: camera AUC@1 {} < ff {}",
+        cam_sfm.auc_1,
+        cam_ff.auc_1
+    );
+    assert!(
+        cam_sfm.fov_error_deg <= cam_ff.fov_error_deg,
+        "{kind:?} {views} views: FoV error {} > ff {}",
+        cam_sfm.fov_error_deg,
+        cam_ff.fov_error_deg
+    );
+    assert!(
+        pts_sfm.auc_1 > pts_ff.auc_1,
+        "{kind:?} {views} views: point AUC@1cm {} <= ff {}",
+        pts_sfm.auc_1,
+        pts_ff.auc_1
+    );
+    assert!(
+        pts_sfm.ratio.unwrap_or(0.0) > 0.3,
+        "{kind:?} {views} views: only {:?} of the GT pixels have a DLT point",
+        pts_sfm.ratio
+    );
 }
 
 #[test]

@@ -90,7 +90,7 @@ pub struct FfSimulation {
     /// The prediction (feed-forward frame).
     pub ff: FeedForward,
     /// `S0` as a 3x4 matrix `[s0 R0 | s0 t0]` (GT world -> feed-forward frame).
-    pub world_to_ff: Matrix3x4<f64>,
+    pub ff_from_world: Matrix3x4<f64>,
     /// GT cameras expressed in the feed-forward frame (unperturbed; translation scaled by `s0`).
     pub gt_cameras_ff: Cameras,
     /// `[N, h, w]` relative depth error `|d_pred / d_gt - 1|` of each valid pixel (0 on sky),
@@ -108,7 +108,12 @@ const SKY_CONF_LOGIT: f64 = -3.5;
 
 /// Simulates the feed-forward prediction from the GT render. `gt_cams`: GT cameras (world,
 /// metres). Deterministic given `seed`; parallel over views.
-pub fn simulate_ff(render: &Render, gt_cams: &Cameras, model: &FfErrorModel, seed: u64) -> FfSimulation {
+pub fn simulate_ff(
+    render: &Render,
+    gt_cams: &Cameras,
+    model: &FfErrorModel,
+    seed: u64,
+) -> FfSimulation {
     let dims = render.dims;
     let (h, w) = (dims.h, dims.w);
     let hw = dims.hw();
@@ -120,14 +125,25 @@ pub fn simulate_ff(render: &Render, gt_cams: &Cameras, model: &FfErrorModel, see
         .iter()
         .zip(&render.prim)
         .filter(|(_, q)| **q != crate::render::SKY)
-        .fold((0.0, 0usize), |(s, c), (p, _)| (s + (r0 * p.coords + t0).norm(), c + 1));
-    let s0 = if count > 0 && sum > 0.0 { count as f64 / sum } else { 1.0 };
-    let mut world_to_ff = Matrix3x4::zeros();
-    world_to_ff.fixed_view_mut::<3, 3>(0, 0).copy_from(&(r0 * s0));
-    world_to_ff.set_column(3, &(t0 * s0));
+        .fold((0.0, 0usize), |(s, c), (p, _)| {
+            (s + (r0 * p.coords + t0).norm(), c + 1)
+        });
+    let s0 = if count > 0 && sum > 0.0 {
+        count as f64 / sum
+    } else {
+        1.0
+    };
+    let mut ff_from_world = Matrix3x4::zeros();
+    ff_from_world
+        .fixed_view_mut::<3, 3>(0, 0)
+        .copy_from(&(r0 * s0));
+    ff_from_world.set_column(3, &(t0 * s0));
 
     // GT cameras in the ff frame: cam_i(world_from_ff(Y)) scaled by s0.
-    let mut gt_ff = Cameras { cam_from_world: Vec::with_capacity(dims.n), intrinsics: gt_cams.intrinsics.clone() };
+    let mut gt_ff = Cameras {
+        cam_from_world: Vec::with_capacity(dims.n),
+        intrinsics: gt_cams.intrinsics.clone(),
+    };
     for i in 0..dims.n {
         let ri = gt_cams.rotation(i);
         let ti = gt_cams.translation(i);
@@ -145,7 +161,8 @@ pub fn simulate_ff(render: &Render, gt_cams: &Cameras, model: &FfErrorModel, see
             let mut rng: SynthRng = stream(seed, Tag::FfPoints, v as u64, 0);
             let rot = small_rotation(&mut rng, model.view_rot_deg.to_radians());
             let scale = 1.0 + model.view_scale * normal(&mut rng);
-            let shift = Vector3::new(normal(&mut rng), normal(&mut rng), normal(&mut rng)) * model.view_shift;
+            let shift = Vector3::new(normal(&mut rng), normal(&mut rng), normal(&mut rng))
+                * model.view_shift;
             // Severity of this view's rigid error in sigmas (the confidence is lower on worse views).
             let severity = (rot.angle() / model.view_rot_deg.to_radians().max(1e-12)).min(3.0)
                 + ((scale - 1.0).abs() / model.view_scale.max(1e-12)).min(3.0);
@@ -154,11 +171,15 @@ pub fn simulate_ff(render: &Render, gt_cams: &Cameras, model: &FfErrorModel, see
             let (mut cen, mut nc) = (Vector3::zeros(), 0usize);
             for p in base..base + hw {
                 if render.valid(p) {
-                    cen += apply_3x4(&world_to_ff, &render.points[p]).coords;
+                    cen += apply_3x4(&ff_from_world, &render.points[p]).coords;
                     nc += 1;
                 }
             }
-            let centroid = if nc > 0 { cen / nc as f64 } else { Vector3::zeros() };
+            let centroid = if nc > 0 {
+                cen / nc as f64
+            } else {
+                Vector3::zeros()
+            };
             let r_t = gt_cams.rotation(v).transpose();
             let k = gt_cams.intrinsics[v];
             let c = gt_cams.center(v);
@@ -176,27 +197,38 @@ pub fn simulate_ff(render: &Render, gt_cams: &Cameras, model: &FfErrorModel, see
                         let u = 2.0 * x as f64 / (w.max(2) - 1) as f64 - 1.0;
                         let vv = 2.0 * y as f64 / (h.max(2) - 1) as f64 - 1.0;
                         let mut pred = depth * (1.0 + warp.eval(u, vv));
-                        pred *= 1.0 + model.depth_noise * (1.0 + 1.5 * (1.0 - cos)) * normal(&mut rng);
+                        pred *=
+                            1.0 + model.depth_noise * (1.0 + 1.5 * (1.0 - cos)) * normal(&mut rng);
                         let mut penalty = 0.0;
                         if render.near_edge[p] && chance(&mut rng, model.edge_ratio) {
-                            let other = far_neighbour(render, v, x, y).unwrap_or(depth * uniform(&mut rng, 1.2, 2.0));
+                            let other = far_neighbour(render, v, x, y)
+                                .unwrap_or(depth * uniform(&mut rng, 1.2, 2.0));
                             pred += uniform(&mut rng, 0.15, 0.85) * (other - depth);
                             penalty += 0.8;
                         } else if chance(&mut rng, model.gross_ratio) {
                             let sign = if chance(&mut rng, 0.5) { 1.0 } else { -1.0 };
-                            pred *= 1.0 + sign * uniform(&mut rng, model.gross_range.0, model.gross_range.1);
+                            pred *= 1.0
+                                + sign
+                                    * uniform(&mut rng, model.gross_range.0, model.gross_range.1);
                         }
                         let e = (pred / depth - 1.0).abs();
                         rel[i] = e as f32;
                         let sigma_ref = model.depth_noise.hypot(model.warp_amp).max(1e-9);
-                        let logit = 3.2 - 0.7 * (e / sigma_ref).min(10.0) - 0.8 * (1.0 - cos) - penalty - 0.25 * severity
+                        let logit = 3.2
+                            - 0.7 * (e / sigma_ref).min(10.0)
+                            - 0.8 * (1.0 - cos)
+                            - penalty
+                            - 0.25 * severity
                             + 0.3 * normal(&mut rng);
                         (c + d * pred.max(1e-6), logit.clamp(-3.0, 4.5))
                     } else {
                         let dist = uniform(&mut rng, model.sky_distance.0, model.sky_distance.1);
-                        (c + d.normalize() * dist, SKY_CONF_LOGIT + 0.3 * normal(&mut rng))
+                        (
+                            c + d.normalize() * dist,
+                            SKY_CONF_LOGIT + 0.3 * normal(&mut rng),
+                        )
                     };
-                    let yff = apply_3x4(&world_to_ff, &world).coords;
+                    let yff = apply_3x4(&ff_from_world, &world).coords;
                     let out = centroid + rot * ((yff - centroid) * scale) + shift;
                     for a in 0..3 {
                         pts[3 * i + a] = out[a] as f32;
@@ -216,7 +248,16 @@ pub fn simulate_ff(render: &Render, gt_cams: &Cameras, model: &FfErrorModel, see
         rel.extend(r);
     }
     let cameras = perturb_cameras(&gt_ff, model, seed);
-    FfSimulation { ff: FeedForward { points, conf, cameras }, world_to_ff, gt_cameras_ff: gt_ff, rel_depth_error: rel }
+    FfSimulation {
+        ff: FeedForward {
+            points,
+            conf,
+            cameras,
+        },
+        ff_from_world,
+        gt_cameras_ff: gt_ff,
+        rel_depth_error: rel,
+    }
 }
 
 /// Depth of the 8-neighbour whose depth differs most from pixel `(x, y)` of view `v`; `None`
@@ -262,7 +303,12 @@ impl Warp {
         let mut wave = || {
             let dir = uniform(rng, 0.0, std::f64::consts::TAU);
             let f = uniform(rng, 0.4, 1.2) * std::f64::consts::PI;
-            (0.5 * amp * normal(rng), f * dir.cos(), f * dir.sin(), uniform(rng, 0.0, std::f64::consts::TAU))
+            (
+                0.5 * amp * normal(rng),
+                f * dir.cos(),
+                f * dir.sin(),
+                uniform(rng, 0.0, std::f64::consts::TAU),
+            )
         };
         let waves = [wave(), wave()];
         Warp { poly, waves }
@@ -270,7 +316,11 @@ impl Warp {
 
     fn eval(&self, u: f64, v: f64) -> f64 {
         let p = &self.poly;
-        let mut f = p[0] * u + p[1] * v + p[2] * u * v + p[3] * (u * u - 1.0 / 3.0) + p[4] * (v * v - 1.0 / 3.0);
+        let mut f = p[0] * u
+            + p[1] * v
+            + p[2] * u * v
+            + p[3] * (u * u - 1.0 / 3.0)
+            + p[4] * (v * v - 1.0 / 3.0);
         for (a, fx, fy, ph) in &self.waves {
             f += a * (fx * u + fy * v + ph).cos();
         }
@@ -293,15 +343,21 @@ fn perturb_cameras(gt_ff: &Cameras, model: &FfErrorModel, seed: u64) -> Cameras 
     let mut rng: SynthRng = stream(seed, Tag::FfCameras, 0, 0);
     let sign = if chance(&mut rng, 0.5) { 1.0 } else { -1.0 };
     let bias = sign * uniform(&mut rng, model.focal_bias.0, model.focal_bias.1);
-    let mut out = Cameras { cam_from_world: Vec::with_capacity(gt_ff.len()), intrinsics: Vec::with_capacity(gt_ff.len()) };
+    let mut out = Cameras {
+        cam_from_world: Vec::with_capacity(gt_ff.len()),
+        intrinsics: Vec::with_capacity(gt_ff.len()),
+    };
     for i in 0..gt_ff.len() {
         let dr = small_rotation(&mut rng, model.cam_rot_deg.to_radians());
-        let dt = Vector3::new(normal(&mut rng), normal(&mut rng), normal(&mut rng)) * model.cam_trans;
+        let dt =
+            Vector3::new(normal(&mut rng), normal(&mut rng), normal(&mut rng)) * model.cam_trans;
         if i == 0 {
-            out.cam_from_world.push(compose(&Matrix3::identity(), &Vector3::zeros()));
+            out.cam_from_world
+                .push(compose(&Matrix3::identity(), &Vector3::zeros()));
         } else {
             let r: Rotation3<f64> = dr * Rotation3::from_matrix_unchecked(gt_ff.rotation(i));
-            out.cam_from_world.push(compose(r.matrix(), &(gt_ff.translation(i) + dt)));
+            out.cam_from_world
+                .push(compose(r.matrix(), &(gt_ff.translation(i) + dt)));
         }
         let mut k = gt_ff.intrinsics[i];
         k[(0, 0)] *= (1.0 + bias) * (1.0 + model.focal_jitter * normal(&mut rng));

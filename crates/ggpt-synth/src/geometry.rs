@@ -14,15 +14,34 @@ pub const T_MIN: f64 = 1e-6;
 #[derive(Debug, Clone, PartialEq)]
 pub enum Shape {
     /// Rectangle in the local `z = 0` plane, `|x| <= hx`, `|y| <= hy` (two-sided).
-    Rect { hx: f64, hy: f64 },
+    Rect {
+        /// Half-width along local `x` (m).
+        hx: f64,
+        /// Half-height along local `y` (m).
+        hy: f64,
+    },
     /// Disc in the local `z = 0` plane, radius `r`.
-    Disc { r: f64 },
+    Disc {
+        /// Radius (m).
+        r: f64,
+    },
     /// Axis-aligned box `|x_i| <= half_i`.
-    Cuboid { half: Vector3<f64> },
+    Cuboid {
+        /// Half-extents along the local axes (m).
+        half: Vector3<f64>,
+    },
     /// Capped cylinder around the local `z` axis, `x^2 + y^2 <= r^2`, `|z| <= hh`.
-    Cylinder { r: f64, hh: f64 },
+    Cylinder {
+        /// Radius (m).
+        r: f64,
+        /// Half-height along local `z` (m).
+        hh: f64,
+    },
     /// Sphere of radius `r` centred at the local origin.
-    Sphere { r: f64 },
+    Sphere {
+        /// Radius (m).
+        r: f64,
+    },
 }
 
 /// Surface hit: ray parameter and the outward unit normal (world frame).
@@ -63,20 +82,38 @@ impl Primitive {
     /// A primitive with the local axes given in world coordinates (`x_axis`, `z_axis`; the `y`
     /// axis completes a right-handed frame). `z_axis` is the normal of planar shapes and the axis
     /// of cylinders.
-    pub fn with_axes(origin: Point3<f64>, x_axis: Vector3<f64>, z_axis: Vector3<f64>, shape: Shape, material: usize) -> Self {
+    pub fn with_axes(
+        origin: Point3<f64>,
+        x_axis: Vector3<f64>,
+        z_axis: Vector3<f64>,
+        shape: Shape,
+        material: usize,
+    ) -> Self {
         let z = z_axis.normalize();
         let x = (x_axis - z * z.dot(&x_axis)).normalize();
         let y = z.cross(&x);
         let local_from_world = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
         let bound = bounding_radius(&shape) * (1.0 + 1e-9) + 1e-9;
-        Primitive { origin, local_from_world, shape, material, bound }
+        Primitive {
+            origin,
+            local_from_world,
+            shape,
+            material,
+            bound,
+        }
     }
 
     /// An axis-aligned primitive rotated by `yaw` (radians) about the world vertical (`y`) axis.
     pub fn yawed(origin: Point3<f64>, yaw: f64, shape: Shape, material: usize) -> Self {
         let world_from_local = Rotation3::from_axis_angle(&Vector3::y_axis(), yaw);
         let bound = bounding_radius(&shape) * (1.0 + 1e-9) + 1e-9;
-        Primitive { origin, local_from_world: world_from_local.matrix().transpose(), shape, material, bound }
+        Primitive {
+            origin,
+            local_from_world: world_from_local.matrix().transpose(),
+            shape,
+            material,
+            bound,
+        }
     }
 
     /// Nearest intersection of the ray `o + t d` (world frame) with `t > T_MIN`.
@@ -126,7 +163,13 @@ impl Primitive {
                 let sq = disc.sqrt();
                 let t0 = (-b - sq) / a;
                 let t1 = (-b + sq) / a;
-                let t = if t0 > T_MIN { t0 } else if t1 > T_MIN { t1 } else { return None };
+                let t = if t0 > T_MIN {
+                    t0
+                } else if t1 > T_MIN {
+                    t1
+                } else {
+                    return None;
+                };
                 (t, (ol + dl * t) / *r)
             }
         };
@@ -155,7 +198,11 @@ fn plane_t(ol: &Vector3<f64>, dl: &Vector3<f64>) -> Option<f64> {
     (t > T_MIN).then_some(t)
 }
 
-fn cuboid(ol: &Vector3<f64>, dl: &Vector3<f64>, half: &Vector3<f64>) -> Option<(f64, Vector3<f64>)> {
+fn cuboid(
+    ol: &Vector3<f64>,
+    dl: &Vector3<f64>,
+    half: &Vector3<f64>,
+) -> Option<(f64, Vector3<f64>)> {
     let mut t_near = f64::NEG_INFINITY;
     let mut t_far = f64::INFINITY;
     let mut axis_near = 0usize;
@@ -182,7 +229,11 @@ fn cuboid(ol: &Vector3<f64>, dl: &Vector3<f64>, half: &Vector3<f64>) -> Option<(
     if t_near > t_far || t_far <= T_MIN {
         return None;
     }
-    let (t, axis) = if t_near > T_MIN { (t_near, axis_near) } else { (t_far, axis_far) };
+    let (t, axis) = if t_near > T_MIN {
+        (t_near, axis_near)
+    } else {
+        (t_far, axis_far)
+    };
     let p = ol + dl * t;
     let mut n = Vector3::zeros();
     n[axis] = p[axis].signum();
@@ -236,9 +287,19 @@ mod tests {
         let s = Primitive::yawed(Point3::new(0.0, 0.0, 5.0), 0.0, Shape::Sphere { r: 1.0 }, 0);
         let t = ray_hits(&s, Point3::origin(), Vector3::new(0.0, 0.0, 2.0)).unwrap_or(f64::NAN);
         assert!((t - 2.0).abs() < 1e-12, "{t}");
-        let b = Primitive::yawed(Point3::new(0.0, 0.0, 5.0), 0.3, Shape::Cuboid { half: Vector3::new(1.0, 1.0, 1.0) }, 0);
+        let b = Primitive::yawed(
+            Point3::new(0.0, 0.0, 5.0),
+            0.3,
+            Shape::Cuboid {
+                half: Vector3::new(1.0, 1.0, 1.0),
+            },
+            0,
+        );
         let h = b.intersect(&Point3::origin(), &Vector3::new(0.0, 0.0, 1.0));
-        let h = h.unwrap_or(Hit { t: f64::NAN, normal: Vector3::zeros() });
+        let h = h.unwrap_or(Hit {
+            t: f64::NAN,
+            normal: Vector3::zeros(),
+        });
         // Face at local z = -1 of a box yawed by 0.3 rad: the ray along z hits it at 5 - 1/cos(0.3).
         assert!((h.t - (5.0 - 1.0 / 0.3f64.cos())).abs() < 1e-12, "{}", h.t);
         assert!(h.normal.z < 0.0);
@@ -247,21 +308,40 @@ mod tests {
 
     #[test]
     fn cylinder_side_and_cap() {
-        let c = Primitive::with_axes(Point3::new(0.0, 0.0, 4.0), Vector3::x(), -Vector3::y(), Shape::Cylinder { r: 0.5, hh: 1.0 }, 0);
+        let c = Primitive::with_axes(
+            Point3::new(0.0, 0.0, 4.0),
+            Vector3::x(),
+            -Vector3::y(),
+            Shape::Cylinder { r: 0.5, hh: 1.0 },
+            0,
+        );
         let t = ray_hits(&c, Point3::origin(), Vector3::z()).unwrap_or(f64::NAN);
         assert!((t - 3.5).abs() < 1e-12);
         // From above (y down world: above = negative y), hitting the top cap at y = -1.
         let h = c.intersect(&Point3::new(0.0, -3.0, 4.0), &Vector3::y());
-        let h = h.unwrap_or(Hit { t: f64::NAN, normal: Vector3::zeros() });
+        let h = h.unwrap_or(Hit {
+            t: f64::NAN,
+            normal: Vector3::zeros(),
+        });
         assert!((h.t - 2.0).abs() < 1e-12);
         assert!((h.normal - (-Vector3::y())).norm() < 1e-12);
     }
 
     #[test]
     fn rect_bounds() {
-        let floor = Primitive::with_axes(Point3::origin(), Vector3::x(), -Vector3::y(), Shape::Rect { hx: 1.0, hy: 1.0 }, 0);
+        let floor = Primitive::with_axes(
+            Point3::origin(),
+            Vector3::x(),
+            -Vector3::y(),
+            Shape::Rect { hx: 1.0, hy: 1.0 },
+            0,
+        );
         assert!(ray_hits(&floor, Point3::new(0.5, -1.0, 0.5), Vector3::y()).is_some());
         assert!(ray_hits(&floor, Point3::new(1.5, -1.0, 0.5), Vector3::y()).is_none());
-        assert!(floor.intersect(&Point3::new(0.5, -1.0, 0.5), &-Vector3::y()).is_none());
+        assert!(
+            floor
+                .intersect(&Point3::new(0.5, -1.0, 0.5), &-Vector3::y())
+                .is_none()
+        );
     }
 }

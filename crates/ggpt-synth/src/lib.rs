@@ -26,7 +26,7 @@ use std::time::Instant;
 
 use nalgebra::{Matrix3, Matrix3x4};
 
-use ggpt_core::{Cameras, Dims, GroundTruth, Scene};
+use ggpt_core::{Cameras, Dims, GroundTruth, Progress, Scene};
 
 pub use error::SynthError;
 pub use feedforward::FfErrorModel;
@@ -114,11 +114,16 @@ impl SynthConfig {
     /// Checks the ranges of every parameter.
     pub fn validate(&self) -> Result<(), SynthError> {
         if self.views < VIEWS_RANGE.0 || self.views > VIEWS_RANGE.1 {
-            return Err(SynthError::Config(format!("views = {}, expected {}..={}", self.views, VIEWS_RANGE.0, VIEWS_RANGE.1)));
+            return Err(SynthError::Config(format!(
+                "views = {}, expected {}..={}",
+                self.views, VIEWS_RANGE.0, VIEWS_RANGE.1
+            )));
         }
         for (name, v) in [("width", self.width), ("height", self.height)] {
             if v == 0 || v % PATCH != 0 || v > 4096 {
-                return Err(SynthError::Config(format!("{name} = {v}, expected a positive multiple of {PATCH} up to 4096")));
+                return Err(SynthError::Config(format!(
+                    "{name} = {v}, expected a positive multiple of {PATCH} up to 4096"
+                )));
             }
         }
         let mut names: Vec<&str> = self.matchers.iter().map(|m| m.name.as_str()).collect();
@@ -129,7 +134,10 @@ impl SynthConfig {
         }
         for m in &self.matchers {
             if !(0.0..=1.0).contains(&m.outlier_ratio) || m.noise_px < 0.0 || m.name.is_empty() {
-                return Err(SynthError::Config(format!("matcher {:?}: outlier_ratio in [0,1], noise_px >= 0, non-empty name", m.name)));
+                return Err(SynthError::Config(format!(
+                    "matcher {:?}: outlier_ratio in [0,1], noise_px >= 0, non-empty name",
+                    m.name
+                )));
             }
         }
         Ok(())
@@ -141,16 +149,12 @@ impl SynthConfig {
     }
 }
 
-/// Generation stages reported to the progress callback.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Stage {
-    /// Ray casting.
-    Render,
-    /// Feed-forward simulation.
-    FeedForward,
-    /// Matches: one tick per (matcher, pair).
-    Matches,
-}
+/// Progress stage of the ray casting (one unit per view).
+pub const STAGE_RENDER: &str = "render";
+/// Progress stage of the feed-forward simulation (one unit per view).
+pub const STAGE_FEED_FORWARD: &str = "feed-forward";
+/// Progress stage of the match simulation (one unit per matcher and view pair).
+pub const STAGE_MATCHES: &str = "matches";
 
 /// Everything [`generate`] produces.
 #[derive(Debug, Clone)]
@@ -158,7 +162,7 @@ pub struct SynthOutput {
     /// The scene: images, GT, ff prediction, matches (no SfM result).
     pub scene: Scene,
     /// `S0 = [s0 R0 | s0 t0]`: GT world (metres) -> feed-forward frame.
-    pub world_to_ff: Matrix3x4<f64>,
+    pub ff_from_world: Matrix3x4<f64>,
     /// GT cameras in the feed-forward frame (unperturbed).
     pub gt_cameras_ff: Cameras,
     /// `[N, h, w]` relative depth error of the ff prediction before the per-view similarity.
@@ -169,15 +173,22 @@ pub struct SynthOutput {
 
 /// Generates a scene. See [`generate_with_progress`].
 pub fn generate(cfg: &SynthConfig) -> Result<SynthOutput, SynthError> {
-    generate_with_progress(cfg, &|_, _| {})
+    generate_with_progress(cfg, &|_| {})
 }
 
-/// Generates a scene, calling `progress(stage, total_ticks_of_stage)` when a stage starts with
-/// its number of ticks, and `progress(stage, 0)` for each finished tick of the match stage.
+/// Generates a scene, reporting progress by stage ([`STAGE_RENDER`], [`STAGE_FEED_FORWARD`],
+/// [`STAGE_MATCHES`]); the match stage reports from several threads, hence `Sync`.
 /// GT: metres, GT world frame; feed-forward: ff frame (see [`feedforward`]); matches: ff pixels.
-pub fn generate_with_progress(cfg: &SynthConfig, progress: &(dyn Fn(Stage, u64) + Sync)) -> Result<SynthOutput, SynthError> {
+pub fn generate_with_progress(
+    cfg: &SynthConfig,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> Result<SynthOutput, SynthError> {
     cfg.validate()?;
-    let dims = Dims { n: cfg.views, h: cfg.height, w: cfg.width };
+    let dims = Dims {
+        n: cfg.views,
+        h: cfg.height,
+        w: cfg.width,
+    };
     let mut timings = Vec::new();
     let t0 = Instant::now();
     let world = match cfg.kind {
@@ -187,14 +198,19 @@ pub fn generate_with_progress(cfg: &SynthConfig, progress: &(dyn Fn(Stage, u64) 
     let (cam_from_world, focal) = world::place_cameras(&world, cfg.seed, cfg.views, cfg.width);
     let (cx, cy) = ggpt_core::camera::centred_principal_point(dims.h, dims.w);
     let k = Matrix3::new(focal, 0.0, cx, 0.0, focal, cy, 0.0, 0.0, 1.0);
-    let gt_cams = Cameras { cam_from_world, intrinsics: vec![k; cfg.views] };
-    progress(Stage::Render, dims.n as u64);
+    let gt_cams = Cameras {
+        cam_from_world,
+        intrinsics: vec![k; cfg.views],
+    };
+    let views = dims.n as u64;
+    progress(Progress::new(STAGE_RENDER, 0, views));
     let render = render::render(&world, &gt_cams, dims);
     let images = render::camera_images(&render, cfg.seed);
+    progress(Progress::new(STAGE_RENDER, views, views));
     timings.push(("render".to_string(), t0.elapsed().as_secs_f64()));
 
     let t1 = Instant::now();
-    progress(Stage::FeedForward, dims.n as u64);
+    progress(Progress::new(STAGE_FEED_FORWARD, 0, views));
     let model = match cfg.kind {
         SceneKind::Room => cfg.ff_error.clone(),
         SceneKind::Object => cfg.ff_error.scaled(OBJECT_FF_ERROR_FACTOR),
@@ -205,6 +221,7 @@ pub fn generate_with_progress(cfg: &SynthConfig, progress: &(dyn Fn(Stage, u64) 
         k[(0, 2)] = ff_cx;
         k[(1, 2)] = ff_cy;
     }
+    progress(Progress::new(STAGE_FEED_FORWARD, views, views));
     timings.push(("feedforward".to_string(), t1.elapsed().as_secs_f64()));
 
     let mut gt_points = Vec::with_capacity(3 * dims.pixels());
@@ -224,17 +241,44 @@ pub fn generate_with_progress(cfg: &SynthConfig, progress: &(dyn Fn(Stage, u64) 
     let t2 = Instant::now();
     let mut match_sets = Vec::new();
     if cfg.matches && !cfg.matchers.is_empty() {
-        progress(Stage::Matches, (cfg.matchers.len() * dims.n * dims.n) as u64);
+        let total = (cfg.matchers.len() * dims.n * dims.n) as u64;
+        progress(Progress::new(STAGE_MATCHES, 0, total));
         let ranks = matches::rank_scores(&images, dims, cfg.seed);
-        let tick = || progress(Stage::Matches, 0);
+        let done = std::sync::atomic::AtomicU64::new(0);
+        let tick = || {
+            let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            progress(Progress::new(STAGE_MATCHES, d, total));
+        };
         for (i, m) in cfg.matchers.iter().enumerate() {
-            match_sets.push(matches::generate_matches(&render, &gt_cams, m, i, cfg.seed, Some(ranks.clone()), &tick));
+            match_sets.push(matches::generate_matches(
+                &render,
+                &gt_cams,
+                m,
+                i,
+                cfg.seed,
+                Some(ranks.clone()),
+                &tick,
+            ));
         }
     }
     timings.push(("matches".to_string(), t2.elapsed().as_secs_f64()));
 
-    let scene = Scene { name: cfg.scene_name(), dims, images, gt: Some(gt), ff: Some(sim.ff), sfm: None, matches: match_sets };
+    let scene = Scene {
+        name: cfg.scene_name(),
+        dims,
+        images,
+        gt: Some(gt),
+        ff: Some(sim.ff),
+        sfm: None,
+        matches: match_sets,
+    };
     scene.validate()?;
     timings.push(("total".to_string(), t0.elapsed().as_secs_f64()));
-    Ok(SynthOutput { scene, world_to_ff: sim.world_to_ff, gt_cameras_ff: sim.gt_cameras_ff, ff_rel_depth_error: sim.rel_depth_error, timings })
+    Ok(SynthOutput {
+        scene,
+        ff_from_world: sim.ff_from_world,
+        gt_cameras_ff: sim.gt_cameras_ff,
+        ff_rel_depth_error: sim.rel_depth_error,
+        timings,
+    })
 }

@@ -41,8 +41,20 @@ pub struct MatcherModel {
 /// 0.2 px smooth bias, 5 % outliers, slightly lower scores).
 pub fn default_matchers() -> Vec<MatcherModel> {
     vec![
-        MatcherModel { name: "synthetic-a".into(), noise_px: 0.15, bias_px: 0.0, outlier_ratio: 0.04, score_offset: 0.0 },
-        MatcherModel { name: "synthetic-b".into(), noise_px: 0.3, bias_px: 0.2, outlier_ratio: 0.05, score_offset: -0.03 },
+        MatcherModel {
+            name: "synthetic-a".into(),
+            noise_px: 0.15,
+            bias_px: 0.0,
+            outlier_ratio: 0.04,
+            score_offset: 0.0,
+        },
+        MatcherModel {
+            name: "synthetic-b".into(),
+            noise_px: 0.3,
+            bias_px: 0.2,
+            outlier_ratio: 0.05,
+            score_offset: -0.03,
+        },
     ]
 }
 
@@ -58,7 +70,12 @@ pub enum GtMatch {
     /// Projects inside view `t` but is hidden by a nearer surface.
     Occluded(Vector2<f64>),
     /// Visible in `t` at `loc` (ff pixels); `ray_angle_deg` = angle between the two viewing rays.
-    Visible { loc: Vector2<f64>, ray_angle_deg: f64 },
+    Visible {
+        /// Location in view `t` (ff pixels).
+        loc: Vector2<f64>,
+        /// Angle between the two viewing rays (degrees).
+        ray_angle_deg: f64,
+    },
 }
 
 /// Exact ground-truth correspondence of pixel `k` of view `s` in view `t` (views of `render`,
@@ -106,7 +123,10 @@ impl PairGeometry {
             return GtMatch::Behind;
         }
         let kt = &self.k_t;
-        let loc = Vector2::new(kt[(0, 0)] * xc.x / xc.z + kt[(0, 2)], kt[(1, 1)] * xc.y / xc.z + kt[(1, 2)]);
+        let loc = Vector2::new(
+            kt[(0, 0)] * xc.x / xc.z + kt[(0, 2)],
+            kt[(1, 1)] * xc.y / xc.z + kt[(1, 2)],
+        );
         let (w, h) = (dims.w as f64, dims.h as f64);
         if !(loc.x >= -0.5 && loc.x < w - 0.5 && loc.y >= -0.5 && loc.y < h - 0.5) {
             return GtMatch::OutOfView(loc);
@@ -117,14 +137,19 @@ impl PairGeometry {
         let x1 = (x0 + 1).min(dims.w - 1);
         let y1 = (y0 + 1).min(dims.h - 1);
         let base = self.t * dims.hw();
-        let visible = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)].iter().any(|&(xx, yy)| {
-            let q = base + yy * dims.w + xx;
-            render.valid(q) && xc.z <= render.depth[q] * (1.0 + OCCLUSION_REL_TOL)
-        });
+        let visible = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
+            .iter()
+            .any(|&(xx, yy)| {
+                let q = base + yy * dims.w + xx;
+                render.valid(q) && xc.z <= render.depth[q] * (1.0 + OCCLUSION_REL_TOL)
+            });
         if !visible {
             return GtMatch::Occluded(loc);
         }
-        GtMatch::Visible { loc, ray_angle_deg: ray_angle_deg(&x, &self.c_s, &self.c_t) }
+        GtMatch::Visible {
+            loc,
+            ray_angle_deg: ray_angle_deg(&x, &self.c_s, &self.c_t),
+        }
     }
 }
 
@@ -152,14 +177,24 @@ pub fn generate_matches(
     let mut matches = vec![0f32; 2 * n * n * hw];
     let mut scores = vec![0f32; n * n * hw];
     if hw > 0 {
-        matches.par_chunks_mut(2 * hw).zip(scores.par_chunks_mut(hw)).enumerate().for_each(|(pair, (m, sc))| {
-            let t = pair / n;
-            let s = pair % n;
-            fill_pair(render, cams, model, matcher_index, seed, s, t, m, sc);
-            progress();
-        });
+        matches
+            .par_chunks_mut(2 * hw)
+            .zip(scores.par_chunks_mut(hw))
+            .enumerate()
+            .for_each(|(pair, (m, sc))| {
+                let t = pair / n;
+                let s = pair % n;
+                fill_pair(render, cams, model, matcher_index, seed, s, t, m, sc);
+                progress();
+            });
     }
-    MatchSet { matcher: model.name.clone(), pred_matches: matches, pred_scores: scores, pred_cycle_error: None, rank_scores }
+    MatchSet {
+        matcher: model.name.clone(),
+        pred_matches: matches,
+        pred_scores: scores,
+        pred_cycle_error: None,
+        rank_scores,
+    }
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -184,18 +219,26 @@ fn fill_pair(
         }
         return;
     }
-    let mut rng: SynthRng = stream(seed, Tag::Matches, matcher_index as u64, (t * dims.n + s) as u64);
+    let mut rng: SynthRng = stream(
+        seed,
+        Tag::Matches,
+        matcher_index as u64,
+        (t * dims.n + s) as u64,
+    );
     // Smooth bias field of this pair: two low-frequency waves.
     let fx = uniform(&mut rng, 0.5, 1.5) * std::f64::consts::TAU / w;
     let fy = uniform(&mut rng, 0.5, 1.5) * std::f64::consts::TAU / h;
     let (px, py) = (uniform(&mut rng, 0.0, 6.3), uniform(&mut rng, 0.0, 6.3));
-    let random_loc = |rng: &mut SynthRng| Vector2::new(uniform(rng, -0.5, w - 0.5), uniform(rng, -0.5, h - 0.5));
+    let random_loc =
+        |rng: &mut SynthRng| Vector2::new(uniform(rng, -0.5, w - 0.5), uniform(rng, -0.5, h - 0.5));
     let geom = PairGeometry::new(cams, s, t);
     for k in 0..dims.hw() {
         let gt = geom.classify(render, k);
         let (loc, score) = match gt {
             GtMatch::Sky => (random_loc(&mut rng), 0.0),
-            _ if chance(&mut rng, model.outlier_ratio) => (random_loc(&mut rng), uniform(&mut rng, 0.15, 1.0)),
+            _ if chance(&mut rng, model.outlier_ratio) => {
+                (random_loc(&mut rng), uniform(&mut rng, 0.15, 1.0))
+            }
             GtMatch::Behind => (random_loc(&mut rng), uniform(&mut rng, 0.0, 0.03)),
             GtMatch::OutOfView(l) => {
                 let (a, b) = normal2(&mut rng);
@@ -211,10 +254,17 @@ fn fill_pair(
                 let cos = render.cos_incidence[p] as f64;
                 let edge = if render.near_edge[p] { 1.0 } else { 0.0 };
                 let (n0, _) = normal2(&mut rng);
-                let q = 0.93 + model.score_offset - 0.35 * (ray_angle_deg / 60.0).powi(2) - 0.2 * edge - 0.3 * (1.0 - cos).powi(2) + 0.04 * n0;
+                let q = 0.93 + model.score_offset
+                    - 0.35 * (ray_angle_deg / 60.0).powi(2)
+                    - 0.2 * edge
+                    - 0.3 * (1.0 - cos).powi(2)
+                    + 0.04 * n0;
                 let score = q.clamp(0.2, 0.995);
-                let sigma = model.noise_px * (1.0 + 2.5 * (0.9 - score).max(0.0)) * (1.0 + ray_angle_deg / 40.0);
-                let bias = Vector2::new((fx * loc.x + px).cos(), (fy * loc.y + py).sin()) * model.bias_px;
+                let sigma = model.noise_px
+                    * (1.0 + 2.5 * (0.9 - score).max(0.0))
+                    * (1.0 + ray_angle_deg / 40.0);
+                let bias =
+                    Vector2::new((fx * loc.x + px).cos(), (fy * loc.y + py).sin()) * model.bias_px;
                 let (a, b) = normal2(&mut rng);
                 (loc + bias + Vector2::new(a, b) * sigma, score)
             }
@@ -230,12 +280,16 @@ fn fill_pair(
 /// impossible). `images`: `[N, h, w, 3]` in `[0, 1]`.
 pub fn rank_scores(images: &[f32], dims: Dims, seed: u64) -> Vec<f32> {
     let (h, w) = (dims.h, dims.w);
-    let grey: Vec<f32> = images.chunks_exact(3).map(|c| 0.299 * c[0] + 0.587 * c[1] + 0.114 * c[2]).collect();
+    let grey: Vec<f32> = images
+        .chunks_exact(3)
+        .map(|c| 0.299 * c[0] + 0.587 * c[1] + 0.114 * c[2])
+        .collect();
     let mut g2 = vec![0f32; dims.pixels()];
     for v in 0..dims.n {
         for y in 0..h {
             for x in 0..w {
-                let at = |xx: usize, yy: usize| grey.get(dims.index(v, yy, xx)).copied().unwrap_or(0.0);
+                let at =
+                    |xx: usize, yy: usize| grey.get(dims.index(v, yy, xx)).copied().unwrap_or(0.0);
                 let gx = at((x + 1).min(w - 1), y) - at(x.saturating_sub(1), y);
                 let gy = at(x, (y + 1).min(h - 1)) - at(x, y.saturating_sub(1));
                 g2[dims.index(v, y, x)] = gx * gx + gy * gy;

@@ -48,7 +48,11 @@ impl Render {
 /// World-frame ray direction of pixel `(x, y)` of a camera (`R^T K^-1 (x, y, 1)`), unnormalised
 /// with unit camera-z component.
 pub fn pixel_ray(r_t: &Matrix3<f64>, k: &Matrix3<f64>, x: f64, y: f64) -> Vector3<f64> {
-    let dc = Vector3::new((x - k[(0, 2)]) / k[(0, 0)], (y - k[(1, 2)]) / k[(1, 1)], 1.0);
+    let dc = Vector3::new(
+        (x - k[(0, 2)]) / k[(0, 0)],
+        (y - k[(1, 2)]) / k[(1, 1)],
+        1.0,
+    );
     r_t * dc
 }
 
@@ -132,7 +136,12 @@ pub fn near_edges(depth: &[f64], dims: Dims) -> Vec<bool> {
                 let p = dims.index(v, y, x);
                 let dp = depth[p];
                 let mut e = false;
-                let nb = [(x > 0, p.wrapping_sub(1)), (x + 1 < w, p + 1), (y > 0, p.wrapping_sub(w)), (y + 1 < h, p + w)];
+                let nb = [
+                    (x > 0, p.wrapping_sub(1)),
+                    (x + 1 < w, p + 1),
+                    (y > 0, p.wrapping_sub(w)),
+                    (y + 1 < h, p + w),
+                ];
                 for (ok, q) in nb {
                     if ok && ((depth[q] > 0.0) != (dp > 0.0)) {
                         e = true;
@@ -141,10 +150,12 @@ pub fn near_edges(depth: &[f64], dims: Dims) -> Vec<bool> {
                 if !e && dp > 0.0 {
                     let ip = inv(dp);
                     if x > 0 && x + 1 < w && depth[p - 1] > 0.0 && depth[p + 1] > 0.0 {
-                        e |= (inv(depth[p - 1]) + inv(depth[p + 1]) - 2.0 * ip).abs() > EDGE_INV_DEPTH_REL * ip;
+                        e |= (inv(depth[p - 1]) + inv(depth[p + 1]) - 2.0 * ip).abs()
+                            > EDGE_INV_DEPTH_REL * ip;
                     }
                     if y > 0 && y + 1 < h && depth[p - w] > 0.0 && depth[p + w] > 0.0 {
-                        e |= (inv(depth[p - w]) + inv(depth[p + w]) - 2.0 * ip).abs() > EDGE_INV_DEPTH_REL * ip;
+                        e |= (inv(depth[p - w]) + inv(depth[p + w]) - 2.0 * ip).abs()
+                            > EDGE_INV_DEPTH_REL * ip;
                     }
                 }
                 edge[p] = e;
@@ -174,18 +185,21 @@ pub fn near_edges(depth: &[f64], dims: Dims) -> Vec<bool> {
 pub fn camera_images(render: &Render, seed: u64) -> Vec<f32> {
     let hw3 = 3 * render.dims.hw();
     let mut out = vec![0f32; render.colour.len()];
-    out.par_chunks_mut(hw3.max(1)).zip(render.colour.par_chunks(hw3.max(1))).enumerate().for_each(|(v, (dst, src))| {
-        let mut rng: SynthRng = stream(seed, Tag::Image, v as u64, 0);
-        let gain = uniform(&mut rng, 0.96, 1.04);
-        let sigma = uniform(&mut rng, 1.0, 2.0) / 255.0;
-        for (pair_d, pair_s) in dst.chunks_mut(2).zip(src.chunks(2)) {
-            let (n0, n1) = normal2(&mut rng);
-            let noise = [n0, n1];
-            for i in 0..pair_d.len() {
-                let val = (pair_s[i] as f64 * gain + sigma * noise[i]).clamp(0.0, 1.0);
-                pair_d[i] = ((val * 255.0).round() / 255.0) as f32;
+    out.par_chunks_mut(hw3.max(1))
+        .zip(render.colour.par_chunks(hw3.max(1)))
+        .enumerate()
+        .for_each(|(v, (dst, src))| {
+            let mut rng: SynthRng = stream(seed, Tag::Image, v as u64, 0);
+            let gain = uniform(&mut rng, 0.96, 1.04);
+            let sigma = uniform(&mut rng, 1.0, 2.0) / 255.0;
+            for (pair_d, pair_s) in dst.chunks_mut(2).zip(src.chunks(2)) {
+                let (n0, n1) = normal2(&mut rng);
+                let noise = [n0, n1];
+                for i in 0..pair_d.len() {
+                    let val = (pair_s[i] as f64 * gain + sigma * noise[i]).clamp(0.0, 1.0);
+                    pair_d[i] = ((val * 255.0).round() / 255.0) as f32;
+                }
             }
-        }
-    });
+        });
     out
 }

@@ -95,7 +95,9 @@ mod tests {
 
     #[test]
     fn streams_are_reproducible_and_distinct() {
-        let a: Vec<u64> = (0..4).map(|_| stream(1, Tag::Image, 2, 3).random()).collect();
+        let a: Vec<u64> = (0..4)
+            .map(|_| stream(1, Tag::Image, 2, 3).random())
+            .collect();
         let mut r = stream(1, Tag::Image, 2, 3);
         let first: u64 = r.random();
         assert_eq!(a[0], first);

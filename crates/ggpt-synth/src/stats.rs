@@ -8,7 +8,10 @@ use ggpt_core::{Dims, MatchSet};
 
 /// Least-squares similarity (Umeyama 1991) `tgt ≈ s R src + t`. Returns `None` for fewer than
 /// 3 points or a degenerate source.
-pub fn umeyama(src: &[Point3<f64>], tgt: &[Point3<f64>]) -> Option<(f64, Matrix3<f64>, Vector3<f64>)> {
+pub fn umeyama(
+    src: &[Point3<f64>],
+    tgt: &[Point3<f64>],
+) -> Option<(f64, Matrix3<f64>, Vector3<f64>)> {
     let n = src.len();
     if n < 3 || tgt.len() != n {
         return None;
@@ -34,7 +37,10 @@ pub fn umeyama(src: &[Point3<f64>], tgt: &[Point3<f64>]) -> Option<(f64, Matrix3
         d[(2, 2)] = -1.0;
     }
     let r = u * d * vt;
-    let s = (svd.singular_values[0] * d[(0, 0)] + svd.singular_values[1] * d[(1, 1)] + svd.singular_values[2] * d[(2, 2)]) / var;
+    let s = (svd.singular_values[0] * d[(0, 0)]
+        + svd.singular_values[1] * d[(1, 1)]
+        + svd.singular_values[2] * d[(2, 2)])
+        / var;
     let t = mt - s * r * ms;
     Some((s, r, t))
 }
@@ -56,14 +62,25 @@ pub struct PointAccuracy {
 /// Umeyama (fit on all, then twice on the 70 % smallest residuals: an approximation of the
 /// robust Sim(3) of pipeline.md §3.1) and returns AUC@5/10 cm. `None` when too few points.
 pub fn point_accuracy(pred: &[f32], gt: &[f32], mask: &[bool]) -> Option<PointAccuracy> {
-    let idx: Vec<usize> = mask.iter().enumerate().filter(|(_, m)| **m).map(|(i, _)| i).collect();
-    let get = |v: &[f32], i: usize| Point3::new(v[3 * i] as f64, v[3 * i + 1] as f64, v[3 * i + 2] as f64);
+    let idx: Vec<usize> = mask
+        .iter()
+        .enumerate()
+        .filter(|(_, m)| **m)
+        .map(|(i, _)| i)
+        .collect();
+    let get = |v: &[f32], i: usize| {
+        Point3::new(v[3 * i] as f64, v[3 * i + 1] as f64, v[3 * i + 2] as f64)
+    };
     let src: Vec<Point3<f64>> = idx.iter().map(|&i| get(pred, i)).collect();
     let tgt: Vec<Point3<f64>> = idx.iter().map(|&i| get(gt, i)).collect();
     let (mut s, mut r, mut t) = umeyama(&src, &tgt)?;
     let mut errs: Vec<f64> = Vec::new();
     for round in 0..3 {
-        errs = src.iter().zip(&tgt).map(|(a, b)| (s * r * a.coords + t - b.coords).norm() * 100.0).collect();
+        errs = src
+            .iter()
+            .zip(&tgt)
+            .map(|(a, b)| (s * r * a.coords + t - b.coords).norm() * 100.0)
+            .collect();
         if round == 2 {
             break;
         }
@@ -80,7 +97,12 @@ pub fn point_accuracy(pred: &[f32], gt: &[f32], mask: &[bool]) -> Option<PointAc
     let auc = |tau: usize| (1..=tau).map(|k| recall(k as f64)).sum::<f64>() / tau as f64 * 100.0;
     let mut sorted = errs.clone();
     sorted.sort_by(f64::total_cmp);
-    Some(PointAccuracy { auc5: auc(5), auc10: auc(10), median_cm: sorted[sorted.len() / 2], count: errs.len() })
+    Some(PointAccuracy {
+        auc5: auc(5),
+        auc10: auc(10),
+        median_cm: sorted[sorted.len() / 2],
+        count: errs.len(),
+    })
 }
 
 /// Spearman rank correlation of two equally long samples (average ranks for ties).
@@ -113,7 +135,11 @@ pub fn spearman(a: &[f64], b: &[f64]) -> f64 {
         va += (x - ma).powi(2);
         vb += (y - mb).powi(2);
     }
-    if va <= 0.0 || vb <= 0.0 { 0.0 } else { c / (va * vb).sqrt() }
+    if va <= 0.0 || vb <= 0.0 {
+        0.0
+    } else {
+        c / (va * vb).sqrt()
+    }
 }
 
 /// Cycle error of `sfm.md` §3 for the pair `(s -> t)`: `|| bilinear_zero_pad(T_{t->s}) (T_{s->t}(p)) - p ||`
@@ -126,7 +152,12 @@ pub fn cycle_error(m: &[f32], dims: Dims, s: usize, t: usize) -> Vec<f32> {
         let (x0, y0) = (x.floor(), y.floor());
         let (fx, fy) = (x - x0, y - y0);
         let mut acc = (0.0, 0.0);
-        for (dx, dy, wgt) in [(0.0, 0.0, (1.0 - fx) * (1.0 - fy)), (1.0, 0.0, fx * (1.0 - fy)), (0.0, 1.0, (1.0 - fx) * fy), (1.0, 1.0, fx * fy)] {
+        for (dx, dy, wgt) in [
+            (0.0, 0.0, (1.0 - fx) * (1.0 - fy)),
+            (1.0, 0.0, fx * (1.0 - fy)),
+            (0.0, 1.0, (1.0 - fx) * fy),
+            (1.0, 1.0, fx * fy),
+        ] {
             let (xi, yi) = (x0 + dx, y0 + dy);
             if xi >= 0.0 && yi >= 0.0 && xi < w as f64 && yi < h as f64 {
                 let k = yi as usize * w + xi as usize;
@@ -175,8 +206,18 @@ pub fn match_stats(ms: &MatchSet, dims: Dims) -> MatchStats {
             }
         }
     }
-    let f = |c: usize| if total > 0 { c as f64 / total as f64 } else { 0.0 };
-    MatchStats { score_gt_06: f(s06), ba_pass: f(ba), dlt_pass: f(dlt) }
+    let f = |c: usize| {
+        if total > 0 {
+            c as f64 / total as f64
+        } else {
+            0.0
+        }
+    };
+    MatchStats {
+        score_gt_06: f(s06),
+        ba_pass: f(ba),
+        dlt_pass: f(dlt),
+    }
 }
 
 #[cfg(test)]
@@ -198,7 +239,20 @@ mod tests {
             m[2 * (hw + k) + 1] = y;
         }
         let e = cycle_error(&m, dims, 0, 1);
-        let want = [0.25, 0.25, 0.25, 1.754459, 0.25, 0.25, 0.25, 1.789728, 0.5, 0.559017, std::f64::consts::FRAC_1_SQRT_2, 2.411723];
+        let want = [
+            0.25,
+            0.25,
+            0.25,
+            1.754459,
+            0.25,
+            0.25,
+            0.25,
+            1.789728,
+            0.5,
+            0.559017,
+            std::f64::consts::FRAC_1_SQRT_2,
+            2.411723,
+        ];
         for (a, b) in e.iter().zip(want) {
             assert!((*a as f64 - b).abs() < 1e-5, "{e:?}");
         }
@@ -207,10 +261,19 @@ mod tests {
     #[test]
     fn umeyama_recovers_a_similarity_and_spearman_ranks() {
         let r = nalgebra::Rotation3::from_euler_angles(0.1, -0.2, 0.3).into_inner();
-        let src: Vec<Point3<f64>> = (0..20).map(|i| Point3::new(i as f64 * 0.1, (i * i) as f64 * 0.01, (i % 3) as f64)).collect();
-        let tgt: Vec<Point3<f64>> = src.iter().map(|p| Point3::from(2.0 * r * p.coords + Vector3::new(1.0, 2.0, 3.0))).collect();
+        let src: Vec<Point3<f64>> = (0..20)
+            .map(|i| Point3::new(i as f64 * 0.1, (i * i) as f64 * 0.01, (i % 3) as f64))
+            .collect();
+        let tgt: Vec<Point3<f64>> = src
+            .iter()
+            .map(|p| Point3::from(2.0 * r * p.coords + Vector3::new(1.0, 2.0, 3.0)))
+            .collect();
         let (s, rr, t) = umeyama(&src, &tgt).unwrap_or((0.0, Matrix3::zeros(), Vector3::zeros()));
-        assert!((s - 2.0).abs() < 1e-9 && (rr - r).norm() < 1e-9 && (t - Vector3::new(1.0, 2.0, 3.0)).norm() < 1e-9);
+        assert!(
+            (s - 2.0).abs() < 1e-9
+                && (rr - r).norm() < 1e-9
+                && (t - Vector3::new(1.0, 2.0, 3.0)).norm() < 1e-9
+        );
         assert!((spearman(&[1.0, 2.0, 3.0], &[10.0, 20.0, 35.0]) - 1.0).abs() < 1e-12);
         assert!((spearman(&[1.0, 2.0, 3.0], &[3.0, 2.0, 1.0]) + 1.0).abs() < 1e-12);
     }

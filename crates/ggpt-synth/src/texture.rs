@@ -64,26 +64,95 @@ pub fn fbm(seed: u64, p: &Vector3<f64>, octaves: u32) -> f64 {
 /// Piecewise-linear palette lookup, `t` clamped to `[0, 1]`.
 fn palette(colours: &[Rgb; 3], t: f64) -> Rgb {
     let t = t.clamp(0.0, 1.0) * 2.0;
-    if t < 1.0 { colours[0].lerp(&colours[1], t) } else { colours[1].lerp(&colours[2], t - 1.0) }
+    if t < 1.0 {
+        colours[0].lerp(&colours[1], t)
+    } else {
+        colours[1].lerp(&colours[2], t - 1.0)
+    }
 }
 
 /// A procedural solid texture. Frequencies are in cycles per metre.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Texture {
     /// 3D checkerboard of cell size `cell` (m).
-    Checker { cell: f64, a: Rgb, b: Rgb },
+    Checker {
+        /// Cell size (m).
+        cell: f64,
+        /// First colour.
+        a: Rgb,
+        /// Second colour.
+        b: Rgb,
+    },
     /// Parallel stripes along `axis` with period `period` (m), edges warped by noise.
-    Stripes { axis: Vector3<f64>, period: f64, warp: f64, a: Rgb, b: Rgb },
+    Stripes {
+        /// Direction across the stripes (unit).
+        axis: Vector3<f64>,
+        /// Period (m).
+        period: f64,
+        /// Noise warp of the edges (m).
+        warp: f64,
+        /// First colour.
+        a: Rgb,
+        /// Second colour.
+        b: Rgb,
+    },
     /// Multi-octave value noise through a 3-colour palette ("photo-like" mottling).
-    Noise { freq: f64, octaves: u32, colours: [Rgb; 3] },
+    Noise {
+        /// Base frequency (cycles per metre).
+        freq: f64,
+        /// Octaves.
+        octaves: u32,
+        /// Palette.
+        colours: [Rgb; 3],
+    },
     /// Linear gradient along `axis` over `length` (m), plus noise.
-    Gradient { axis: Vector3<f64>, length: f64, a: Rgb, b: Rgb },
+    Gradient {
+        /// Direction of the gradient (unit).
+        axis: Vector3<f64>,
+        /// Length over which `a` turns into `b` (m).
+        length: f64,
+        /// Start colour.
+        a: Rgb,
+        /// End colour.
+        b: Rgb,
+    },
     /// Wood: concentric rings around an axis through `centre`, perturbed by turbulence.
-    Wood { centre: Point3<f64>, axis: Vector3<f64>, ring_freq: f64, turbulence: f64, light: Rgb, dark: Rgb },
+    Wood {
+        /// A point on the ring axis (world frame, m).
+        centre: Point3<f64>,
+        /// Ring axis (unit).
+        axis: Vector3<f64>,
+        /// Rings per metre.
+        ring_freq: f64,
+        /// Turbulence amplitude.
+        turbulence: f64,
+        /// Light wood colour.
+        light: Rgb,
+        /// Dark ring colour.
+        dark: Rgb,
+    },
     /// Marble: `sin` bands along `dir` perturbed by strong turbulence.
-    Marble { dir: Vector3<f64>, freq: f64, turbulence: f64, colours: [Rgb; 3] },
+    Marble {
+        /// Band direction (unit).
+        dir: Vector3<f64>,
+        /// Bands per metre.
+        freq: f64,
+        /// Turbulence amplitude.
+        turbulence: f64,
+        /// Palette.
+        colours: [Rgb; 3],
+    },
     /// Random blobs of palette colours on a base colour.
-    Blobs { freq: f64, threshold: f64, base: Rgb, colours: [Rgb; 3] },
+    Blobs {
+        /// Blob frequency (cycles per metre).
+        freq: f64,
+        /// Noise level above which a blob is drawn.
+        threshold: f64,
+        /// Base colour.
+        base: Rgb,
+        /// Blob palette.
+        colours: [Rgb; 3],
+    },
 }
 
 /// A texture with its noise seed and a fine-detail amount (every surface gets some fine grain, as
@@ -108,31 +177,59 @@ impl Material {
         let base = match &self.texture {
             Texture::Checker { cell, a, b } => {
                 let q = v / *cell;
-                let parity = (q.x.floor() as i64 + q.y.floor() as i64 + q.z.floor() as i64).rem_euclid(2);
+                let parity =
+                    (q.x.floor() as i64 + q.y.floor() as i64 + q.z.floor() as i64).rem_euclid(2);
                 if parity == 0 { *a } else { *b }
             }
-            Texture::Stripes { axis, period, warp, a, b } => {
+            Texture::Stripes {
+                axis,
+                period,
+                warp,
+                a,
+                b,
+            } => {
                 let u = axis.dot(&v) / *period + warp * (fbm(s, &(v * 3.0), 3) - 0.5);
                 let t = 0.5 + 0.5 * (std::f64::consts::TAU * u).sin();
                 a.lerp(b, smoothstep(0.35, 0.65, t))
             }
-            Texture::Noise { freq, octaves, colours } => palette(colours, 1.6 * (fbm(s, &(v * *freq), *octaves) - 0.5) + 0.5),
+            Texture::Noise {
+                freq,
+                octaves,
+                colours,
+            } => palette(colours, 1.6 * (fbm(s, &(v * *freq), *octaves) - 0.5) + 0.5),
             Texture::Gradient { axis, length, a, b } => {
                 let t = axis.dot(&v) / *length + 0.5 + 0.25 * (fbm(s, &(v * 2.0), 3) - 0.5);
                 a.lerp(b, t.clamp(0.0, 1.0))
             }
-            Texture::Wood { centre, axis, ring_freq, turbulence, light, dark } => {
+            Texture::Wood {
+                centre,
+                axis,
+                ring_freq,
+                turbulence,
+                light,
+                dark,
+            } => {
                 let d = v - centre.coords;
                 let radial = (d - axis * axis.dot(&d)).norm();
                 let r = radial * ring_freq + turbulence * fbm(s, &(v * 4.0), 4);
                 let ring = r - r.floor();
                 light.lerp(dark, smoothstep(0.0, 0.8, ring).powf(1.5))
             }
-            Texture::Marble { dir, freq, turbulence, colours } => {
+            Texture::Marble {
+                dir,
+                freq,
+                turbulence,
+                colours,
+            } => {
                 let u = dir.dot(&v) * freq + turbulence * fbm(s, &(v * 2.5), 5);
                 palette(colours, 0.5 + 0.5 * (std::f64::consts::TAU * u).sin())
             }
-            Texture::Blobs { freq, threshold, base, colours } => {
+            Texture::Blobs {
+                freq,
+                threshold,
+                base,
+                colours,
+            } => {
                 let n = fbm(s, &(v * *freq), 3);
                 let pick = value_noise(s ^ 0x77, &(v * (*freq * 0.5)));
                 let blob = palette(colours, pick);
@@ -207,7 +304,11 @@ pub fn random_material(rng: &mut SynthRng, family: TextureFamily) -> Material {
             a: random_colour(rng, (0.1, 0.8), (0.2, 0.6)),
             b: random_colour(rng, (0.1, 0.8), (0.5, 0.95)),
         },
-        2 => Texture::Noise { freq: uniform(rng, 1.5, 8.0), octaves: 5, colours: palette3(rng) },
+        2 => Texture::Noise {
+            freq: uniform(rng, 1.5, 8.0),
+            octaves: 5,
+            colours: palette3(rng),
+        },
         3 => Texture::Gradient {
             axis: unit_vector(rng),
             length: uniform(rng, 0.5, 4.0),
@@ -217,7 +318,11 @@ pub fn random_material(rng: &mut SynthRng, family: TextureFamily) -> Material {
         4 => {
             let light = random_colour(rng, (0.3, 0.6), (0.55, 0.85));
             Texture::Wood {
-                centre: Point3::new(uniform(rng, -5.0, 5.0), uniform(rng, -5.0, 5.0), uniform(rng, -5.0, 5.0)),
+                centre: Point3::new(
+                    uniform(rng, -5.0, 5.0),
+                    uniform(rng, -5.0, 5.0),
+                    uniform(rng, -5.0, 5.0),
+                ),
                 axis: unit_vector(rng),
                 ring_freq: uniform(rng, 6.0, 20.0),
                 turbulence: uniform(rng, 0.5, 2.5),
@@ -239,7 +344,12 @@ pub fn random_material(rng: &mut SynthRng, family: TextureFamily) -> Material {
         },
     };
     let seed = splitmix64((normal(rng).to_bits()) ^ 0x5EED);
-    Material { texture, seed, grain: uniform(rng, 0.12, 0.3), grain_freq: uniform(rng, 15.0, 40.0) }
+    Material {
+        texture,
+        seed,
+        grain: uniform(rng, 0.12, 0.3),
+        grain_freq: uniform(rng, 15.0, 40.0),
+    }
 }
 
 #[cfg(test)]
@@ -266,7 +376,11 @@ mod tests {
             for i in 0..20 {
                 let p = Point3::new(i as f64 * 0.37 - 3.0, 0.11 * i as f64, -0.5);
                 let c = m.albedo(&p);
-                assert!(c.iter().all(|v| (0.0..=1.0).contains(v)), "{c:?} of {:?}", m.texture);
+                assert!(
+                    c.iter().all(|v| (0.0..=1.0).contains(v)),
+                    "{c:?} of {:?}",
+                    m.texture
+                );
                 assert_eq!(c, m.albedo(&p));
             }
         }
@@ -276,7 +390,9 @@ mod tests {
     fn textures_vary_spatially() {
         let mut rng = stream(2, Tag::Texture, 0, 0);
         let m = random_material(&mut rng, TextureFamily::Wall);
-        let cols: Vec<Rgb> = (0..100).map(|i| m.albedo(&Point3::new(0.013 * i as f64, 0.007 * i as f64, 1.0))).collect();
+        let cols: Vec<Rgb> = (0..100)
+            .map(|i| m.albedo(&Point3::new(0.013 * i as f64, 0.007 * i as f64, 1.0)))
+            .collect();
         let mean = cols.iter().fold(Rgb::zeros(), |a, c| a + c) / cols.len() as f64;
         let var = cols.iter().map(|c| (c - mean).norm_squared()).sum::<f64>() / cols.len() as f64;
         assert!(var > 1e-4, "texture is flat: var {var}");

@@ -28,6 +28,19 @@ impl std::fmt::Display for SceneKind {
     }
 }
 
+impl SceneKind {
+    /// Parses `room` or `object` (the [`std::fmt::Display`] names).
+    pub fn parse(s: &str) -> Result<Self, crate::SynthError> {
+        match s {
+            "room" => Ok(SceneKind::Room),
+            "object" => Ok(SceneKind::Object),
+            other => Err(crate::SynthError::Config(format!(
+                "unknown scene kind {other:?} (room, object)"
+            ))),
+        }
+    }
+}
+
 /// Light of the scene (shading only; view independent).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Light {
@@ -72,14 +85,20 @@ impl World {
 
     /// True when any primitive is hit with `T_MIN < t < t_max` (shadow rays).
     fn occluded(&self, o: &Point3<f64>, d: &Vector3<f64>, t_max: f64) -> bool {
-        self.prims.iter().any(|p| p.intersect(o, d).is_some_and(|h| h.t < t_max))
+        self.prims
+            .iter()
+            .any(|p| p.intersect(o, d).is_some_and(|h| h.t < t_max))
     }
 
     /// Shaded colour of a surface point `p` (world) hit by a ray with direction `d` on primitive
     /// `prim` with outward normal `n`. Lambert + ambient + hard shadows; view independent except
     /// for which side of a two-sided plane is seen.
     pub fn shade(&self, p: &Point3<f64>, d: &Vector3<f64>, n: &Vector3<f64>, prim: usize) -> Rgb {
-        let albedo = self.prims.get(prim).and_then(|q| self.materials.get(q.material)).map_or(Rgb::repeat(0.5), |m| m.albedo(p));
+        let albedo = self
+            .prims
+            .get(prim)
+            .and_then(|q| self.materials.get(q.material))
+            .map_or(Rgb::repeat(0.5), |m| m.albedo(p));
         let n = if n.dot(d) > 0.0 { -n } else { *n };
         let origin = p + n * 1e-6;
         let (to_light, t_max, falloff) = match &self.light {
@@ -91,7 +110,11 @@ impl World {
             Light::Directional(l) => (*l, f64::INFINITY, 1.0),
         };
         let cos = n.dot(&to_light.normalize()).max(0.0);
-        let lit = if cos > 0.0 && !self.occluded(&origin, &to_light, t_max) { cos * falloff } else { 0.0 };
+        let lit = if cos > 0.0 && !self.occluded(&origin, &to_light, t_max) {
+            cos * falloff
+        } else {
+            0.0
+        };
         (albedo * (0.35 + 0.75 * lit)).map(|c| c.clamp(0.0, 1.0))
     }
 
@@ -107,17 +130,33 @@ impl World {
     }
 }
 
-fn rect(origin: Point3<f64>, x: Vector3<f64>, z: Vector3<f64>, hx: f64, hy: f64, material: usize) -> Primitive {
+fn rect(
+    origin: Point3<f64>,
+    x: Vector3<f64>,
+    z: Vector3<f64>,
+    hx: f64,
+    hy: f64,
+    material: usize,
+) -> Primitive {
     Primitive::with_axes(origin, x, z, Shape::Rect { hx, hy }, material)
 }
 
 /// Footprint circles used to keep furniture apart: (x, z, radius).
-fn place(rng: &mut SynthRng, taken: &mut Vec<(f64, f64, f64)>, radius: f64, spread: f64, centre: (f64, f64)) -> Option<(f64, f64)> {
+fn place(
+    rng: &mut SynthRng,
+    taken: &mut Vec<(f64, f64, f64)>,
+    radius: f64,
+    spread: f64,
+    centre: (f64, f64),
+) -> Option<(f64, f64)> {
     for _ in 0..60 {
         let a = uniform(rng, 0.0, std::f64::consts::TAU);
         let r = spread * uniform(rng, 0.0, 1.0).sqrt();
         let (x, z) = (centre.0 + r * a.cos(), centre.1 + r * a.sin());
-        if taken.iter().all(|&(tx, tz, tr)| (tx - x).hypot(tz - z) > tr + radius + 0.05) {
+        if taken
+            .iter()
+            .all(|&(tx, tz, tr)| (tx - x).hypot(tz - z) > tr + radius + 0.05)
+        {
             taken.push((x, z, radius));
             return Some((x, z));
         }
@@ -131,50 +170,104 @@ fn add_item(rng: &mut SynthRng, w: &mut World, x: f64, z: f64, fr: f64, scale: f
     let kind = kinds[(uniform(rng, 0.0, kinds.len() as f64) as usize).min(kinds.len() - 1)];
     w.materials.push(random_material(rng, TextureFamily::Any));
     let m = w.materials.len() - 1;
-    let yaw = if chance(rng, 0.3) { 0.0 } else { uniform(rng, 0.0, std::f64::consts::FRAC_PI_2) };
+    let yaw = if chance(rng, 0.3) {
+        0.0
+    } else {
+        uniform(rng, 0.0, std::f64::consts::FRAC_PI_2)
+    };
     match kind {
         // Box (yawed or not).
         0 => {
-            let half = Vector3::new(fr * uniform(rng, 0.55, 0.7), scale * uniform(rng, 0.15, 0.6), fr * uniform(rng, 0.45, 0.7));
-            w.prims.push(Primitive::yawed(Point3::new(x, -half.y, z), yaw, Shape::Cuboid { half }, m));
+            let half = Vector3::new(
+                fr * uniform(rng, 0.55, 0.7),
+                scale * uniform(rng, 0.15, 0.6),
+                fr * uniform(rng, 0.45, 0.7),
+            );
+            w.prims.push(Primitive::yawed(
+                Point3::new(x, -half.y, z),
+                yaw,
+                Shape::Cuboid { half },
+                m,
+            ));
             // Sometimes a sphere or a smaller box on top.
             if chance(rng, 0.35) {
                 let r = half.x.min(half.z) * uniform(rng, 0.5, 0.9);
                 let m2 = w.materials.len();
                 w.materials.push(random_material(rng, TextureFamily::Any));
-                w.prims.push(Primitive::yawed(Point3::new(x, -2.0 * half.y - r, z), 0.0, Shape::Sphere { r }, m2));
+                w.prims.push(Primitive::yawed(
+                    Point3::new(x, -2.0 * half.y - r, z),
+                    0.0,
+                    Shape::Sphere { r },
+                    m2,
+                ));
             }
         }
         // Table: top + four legs.
         1 => {
             let height = scale * uniform(rng, 0.6, 0.8);
             let top = Vector3::new(fr * 0.68, 0.03 * scale, fr * uniform(rng, 0.4, 0.68));
-            w.prims.push(Primitive::yawed(Point3::new(x, -height + top.y, z), yaw, Shape::Cuboid { half: top }, m));
+            w.prims.push(Primitive::yawed(
+                Point3::new(x, -height + top.y, z),
+                yaw,
+                Shape::Cuboid { half: top },
+                m,
+            ));
             let rot = Rotation3::from_axis_angle(&Vector3::y_axis(), yaw);
             let leg = Vector3::new(0.03 * scale, (height - 2.0 * top.y) / 2.0, 0.03 * scale);
             for (sx, sz) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
-                let off = rot * Vector3::new(sx * (top.x - 0.06 * scale), 0.0, sz * (top.z - 0.06 * scale));
-                w.prims.push(Primitive::yawed(Point3::new(x + off.x, -leg.y, z + off.z), yaw, Shape::Cuboid { half: leg }, m));
+                let off = rot
+                    * Vector3::new(
+                        sx * (top.x - 0.06 * scale),
+                        0.0,
+                        sz * (top.z - 0.06 * scale),
+                    );
+                w.prims.push(Primitive::yawed(
+                    Point3::new(x + off.x, -leg.y, z + off.z),
+                    yaw,
+                    Shape::Cuboid { half: leg },
+                    m,
+                ));
             }
         }
         // Vertical cylinder.
         2 => {
             let r = fr * uniform(rng, 0.6, 0.95);
             let hh = scale * uniform(rng, 0.2, 0.6);
-            w.prims.push(Primitive::with_axes(Point3::new(x, -hh, z), Vector3::x(), -Vector3::y(), Shape::Cylinder { r, hh }, m));
+            w.prims.push(Primitive::with_axes(
+                Point3::new(x, -hh, z),
+                Vector3::x(),
+                -Vector3::y(),
+                Shape::Cylinder { r, hh },
+                m,
+            ));
         }
         // Sphere, resting or floating.
         3 => {
             let r = fr * uniform(rng, 0.6, 0.95);
-            let lift = if chance(rng, 0.5) { 0.0 } else { scale * uniform(rng, 0.2, 0.7) };
-            w.prims.push(Primitive::yawed(Point3::new(x, -r - lift, z), 0.0, Shape::Sphere { r }, m));
+            let lift = if chance(rng, 0.5) {
+                0.0
+            } else {
+                scale * uniform(rng, 0.2, 0.7)
+            };
+            w.prims.push(Primitive::yawed(
+                Point3::new(x, -r - lift, z),
+                0.0,
+                Shape::Sphere { r },
+                m,
+            ));
         }
         // Lying cylinder (axis horizontal).
         _ => {
             let r = fr * uniform(rng, 0.25, 0.45);
             let hh = fr * uniform(rng, 0.6, 0.9);
             let axis = Vector3::new(yaw.cos(), 0.0, yaw.sin());
-            w.prims.push(Primitive::with_axes(Point3::new(x, -r, z), Vector3::y(), axis, Shape::Cylinder { r, hh }, m));
+            w.prims.push(Primitive::with_axes(
+                Point3::new(x, -r, z),
+                Vector3::y(),
+                axis,
+                Shape::Cylinder { r, hh },
+                m,
+            ));
         }
     }
 }
@@ -190,26 +283,61 @@ pub fn build_room(seed: u64, ceiling: Option<bool>) -> World {
     let back = uniform(&mut rng, 2.5, 3.8);
     let front = -(ROOM_CAM_RADIUS.1 + uniform(&mut rng, 1.0, 1.8));
     // Without a ceiling the walls are lower so that some views see sky above them.
-    let height = if ceiling { uniform(&mut rng, 2.3, 2.9) } else { uniform(&mut rng, 1.5, 2.3) };
+    let height = if ceiling {
+        uniform(&mut rng, 2.3, 2.9)
+    } else {
+        uniform(&mut rng, 1.5, 2.3)
+    };
     let mid_z = 0.5 * (back + front);
     let half_d = 0.5 * (back - front) + 0.01;
     let mut w = World {
         kind: SceneKind::Room,
         prims: Vec::new(),
         materials: Vec::new(),
-        light: Light::Point(Point3::new(uniform(&mut rng, -1.0, 1.0), -height + 0.3, uniform(&mut rng, -1.5, 1.0))),
+        light: Light::Point(Point3::new(
+            uniform(&mut rng, -1.0, 1.0),
+            -height + 0.3,
+            uniform(&mut rng, -1.5, 1.0),
+        )),
         target: Point3::new(0.0, -0.6, 0.0),
         sky_seed: rng_seed(&mut rng),
         ceiling,
     };
     let up = -Vector3::y();
     let floor_m = push_mat(&mut w, &mut rng, TextureFamily::Floor);
-    w.prims.push(rect(Point3::new(0.0, 0.0, mid_z), Vector3::x(), up, hx + 0.01, half_d, floor_m));
+    w.prims.push(rect(
+        Point3::new(0.0, 0.0, mid_z),
+        Vector3::x(),
+        up,
+        hx + 0.01,
+        half_d,
+        floor_m,
+    ));
     let walls = [
-        (Point3::new(0.0, -height / 2.0, back), Vector3::x(), -Vector3::z(), hx + 0.01),
-        (Point3::new(0.0, -height / 2.0, front), Vector3::x(), Vector3::z(), hx + 0.01),
-        (Point3::new(-hx, -height / 2.0, mid_z), Vector3::z(), Vector3::x(), half_d),
-        (Point3::new(hx, -height / 2.0, mid_z), Vector3::z(), -Vector3::x(), half_d),
+        (
+            Point3::new(0.0, -height / 2.0, back),
+            Vector3::x(),
+            -Vector3::z(),
+            hx + 0.01,
+        ),
+        (
+            Point3::new(0.0, -height / 2.0, front),
+            Vector3::x(),
+            Vector3::z(),
+            hx + 0.01,
+        ),
+        (
+            Point3::new(-hx, -height / 2.0, mid_z),
+            Vector3::z(),
+            Vector3::x(),
+            half_d,
+        ),
+        (
+            Point3::new(hx, -height / 2.0, mid_z),
+            Vector3::z(),
+            -Vector3::x(),
+            half_d,
+        ),
     ];
     for (o, x, n, half_w) in walls {
         let m = push_mat(&mut w, &mut rng, TextureFamily::Wall);
@@ -217,15 +345,42 @@ pub fn build_room(seed: u64, ceiling: Option<bool>) -> World {
     }
     if ceiling {
         let m = push_mat(&mut w, &mut rng, TextureFamily::Wall);
-        w.prims.push(rect(Point3::new(0.0, -height, mid_z), Vector3::x(), Vector3::y(), hx + 0.01, half_d, m));
+        w.prims.push(rect(
+            Point3::new(0.0, -height, mid_z),
+            Vector3::x(),
+            Vector3::y(),
+            hx + 0.01,
+            half_d,
+            m,
+        ));
     }
     // A shelf / cabinet against the back wall and a low panel on the right.
     let m = push_mat(&mut w, &mut rng, TextureFamily::Any);
-    let shelf = Vector3::new(uniform(&mut rng, 0.5, 1.0), uniform(&mut rng, 0.5, 0.9), uniform(&mut rng, 0.15, 0.3));
-    w.prims.push(Primitive::yawed(Point3::new(uniform(&mut rng, -1.5, 1.5), -shelf.y, back - shelf.z - 0.02), 0.0, Shape::Cuboid { half: shelf }, m));
+    let shelf = Vector3::new(
+        uniform(&mut rng, 0.5, 1.0),
+        uniform(&mut rng, 0.5, 0.9),
+        uniform(&mut rng, 0.15, 0.3),
+    );
+    w.prims.push(Primitive::yawed(
+        Point3::new(
+            uniform(&mut rng, -1.5, 1.5),
+            -shelf.y,
+            back - shelf.z - 0.02,
+        ),
+        0.0,
+        Shape::Cuboid { half: shelf },
+        m,
+    ));
     let m = push_mat(&mut w, &mut rng, TextureFamily::Wall);
     let panel_h = uniform(&mut rng, 0.4, 0.9);
-    w.prims.push(rect(Point3::new(hx - 0.6, -panel_h / 2.0, mid_z + 1.0), Vector3::z(), -Vector3::x(), 1.2, panel_h / 2.0, m));
+    w.prims.push(rect(
+        Point3::new(hx - 0.6, -panel_h / 2.0, mid_z + 1.0),
+        Vector3::z(),
+        -Vector3::x(),
+        1.2,
+        panel_h / 2.0,
+        m,
+    ));
     // Furniture cluster around the target.
     let mut taken = vec![];
     let count = 4 + (uniform(&mut rng, 0.0, 4.0) as usize).min(3);
@@ -241,7 +396,12 @@ pub fn build_room(seed: u64, ceiling: Option<bool>) -> World {
 /// Builds a random object-centric scene: primitives clustered on a finite ground disc.
 pub fn build_object(seed: u64) -> World {
     let mut rng = stream(seed, Tag::Layout, 1, 0);
-    let sun = Vector3::new(uniform(&mut rng, -0.6, 0.6), -1.0, uniform(&mut rng, -0.6, 0.6)).normalize();
+    let sun = Vector3::new(
+        uniform(&mut rng, -0.6, 0.6),
+        -1.0,
+        uniform(&mut rng, -0.6, 0.6),
+    )
+    .normalize();
     let mut w = World {
         kind: SceneKind::Object,
         prims: Vec::new(),
@@ -253,7 +413,13 @@ pub fn build_object(seed: u64) -> World {
     };
     let m = push_mat(&mut w, &mut rng, TextureFamily::Floor);
     let ground_r = uniform(&mut rng, 4.0, 6.0);
-    w.prims.push(Primitive::with_axes(Point3::origin(), Vector3::x(), -Vector3::y(), Shape::Disc { r: ground_r }, m));
+    w.prims.push(Primitive::with_axes(
+        Point3::origin(),
+        Vector3::x(),
+        -Vector3::y(),
+        Shape::Disc { r: ground_r },
+        m,
+    ));
     let mut taken = vec![];
     let count = 3 + (uniform(&mut rng, 0.0, 5.0) as usize).min(4);
     for _ in 0..count {
@@ -296,15 +462,28 @@ pub fn look_at(centre: &Point3<f64>, look_at: &Point3<f64>, roll: f64) -> Matrix
 /// Places `n` cameras on an arc (rooms) or orbit (objects) around the world's target, all
 /// looking at (a jittered) target. Returns `cam_from_world` (metres) and the focal length in
 /// pixels for an image of width `width` (horizontal field of view drawn in 55..70 deg).
-pub fn place_cameras(world: &World, seed: u64, n: usize, width: usize) -> (Vec<Matrix3x4<f64>>, f64) {
+pub fn place_cameras(
+    world: &World,
+    seed: u64,
+    n: usize,
+    width: usize,
+) -> (Vec<Matrix3x4<f64>>, f64) {
     let mut rng = stream(seed, Tag::Cameras, 0, 0);
     let fov = uniform(&mut rng, 55.0, 70.0).to_radians();
     let focal = (width as f64 / 2.0) / (fov / 2.0).tan();
     // Angular step between neighbouring views (deg) and the total span of the arc / orbit.
     let gaps = (n.max(2) - 1) as f64;
     let (span, radius, height) = match world.kind {
-        SceneKind::Room => ((uniform(&mut rng, 6.0, 12.0) * gaps).min(90.0), ROOM_CAM_RADIUS, (1.3, 1.8)),
-        SceneKind::Object => ((uniform(&mut rng, 15.0, 26.0) * gaps).min(300.0), (1.6, 2.3), (0.7, 1.5)),
+        SceneKind::Room => (
+            (uniform(&mut rng, 6.0, 12.0) * gaps).min(90.0),
+            ROOM_CAM_RADIUS,
+            (1.3, 1.8),
+        ),
+        SceneKind::Object => (
+            (uniform(&mut rng, 15.0, 26.0) * gaps).min(300.0),
+            (1.6, 2.3),
+            (0.7, 1.5),
+        ),
     };
     let phi0 = match world.kind {
         SceneKind::Room => 0.0,
@@ -314,13 +493,23 @@ pub fn place_cameras(world: &World, seed: u64, n: usize, width: usize) -> (Vec<M
     let foot = Point3::new(world.target.x, 0.0, world.target.z);
     let h_mid = uniform(&mut rng, height.0, height.1);
     for i in 0..n {
-        let frac = if n > 1 { i as f64 / (n - 1) as f64 - 0.5 } else { 0.0 };
+        let frac = if n > 1 {
+            i as f64 / (n - 1) as f64 - 0.5
+        } else {
+            0.0
+        };
         let step = if n > 1 { span / (n - 1) as f64 } else { 0.0 };
-        let phi = (phi0 + span * frac + 0.2 * step * normal(&mut rng).clamp(-2.0, 2.0)).to_radians();
+        let phi =
+            (phi0 + span * frac + 0.2 * step * normal(&mut rng).clamp(-2.0, 2.0)).to_radians();
         let r = uniform(&mut rng, radius.0, radius.1);
         let h = (h_mid + 0.12 * normal(&mut rng)).clamp(height.0, height.1);
         let centre = Point3::new(foot.x + r * phi.sin(), -h, foot.z - r * phi.cos());
-        let aim = world.target + Vector3::new(0.25 * normal(&mut rng), 0.1 * normal(&mut rng), 0.25 * normal(&mut rng));
+        let aim = world.target
+            + Vector3::new(
+                0.25 * normal(&mut rng),
+                0.1 * normal(&mut rng),
+                0.25 * normal(&mut rng),
+            );
         let roll = 2f64.to_radians() * normal(&mut rng).clamp(-2.0, 2.0);
         cams.push(look_at(&centre, &aim, roll));
     }
@@ -350,7 +539,10 @@ mod tests {
                 for m in &cams {
                     let r = m.fixed_view::<3, 3>(0, 0).into_owned();
                     let c = Point3::from(-(r.transpose() * m.column(3)));
-                    assert!(w.prims.iter().all(|p| !p.contains(&c, 0.05)), "camera inside a solid, seed {seed}");
+                    assert!(
+                        w.prims.iter().all(|p| !p.contains(&c, 0.05)),
+                        "camera inside a solid, seed {seed}"
+                    );
                 }
             }
         }

@@ -1,4 +1,5 @@
 //! End-to-end properties of generated scenes at small size (56x42, 4 views).
+#![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 use ggpt_synth::matches::{GtMatch, gt_match};
 use ggpt_synth::stats::{cycle_error, match_stats, point_accuracy, spearman};
@@ -6,7 +7,14 @@ use ggpt_synth::{SceneKind, SynthConfig, SynthOutput, generate};
 use nalgebra::{Point3, Vector3};
 
 fn small(kind: SceneKind, seed: u64) -> SynthConfig {
-    SynthConfig { kind, views: 4, width: 56, height: 42, seed, ..SynthConfig::default() }
+    SynthConfig {
+        kind,
+        views: 4,
+        width: 56,
+        height: 42,
+        seed,
+        ..SynthConfig::default()
+    }
 }
 
 fn gen_ok(cfg: &SynthConfig) -> SynthOutput {
@@ -22,7 +30,10 @@ fn same_seed_same_scene_different_seed_different() {
     let a = gen_ok(&cfg);
     let b = gen_ok(&cfg);
     assert_eq!(a.scene, b.scene);
-    let c = gen_ok(&SynthConfig { seed: 4, ..cfg.clone() });
+    let c = gen_ok(&SynthConfig {
+        seed: 4,
+        ..cfg.clone()
+    });
     assert_ne!(a.scene.images, c.scene.images);
     assert_ne!(a.scene.matches, c.scene.matches);
 }
@@ -30,8 +41,14 @@ fn same_seed_same_scene_different_seed_different() {
 #[test]
 fn result_is_independent_of_thread_count() {
     let cfg = small(SceneKind::Object, 5);
-    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().map(|p| p.install(|| gen_ok(&cfg)));
-    let three = rayon::ThreadPoolBuilder::new().num_threads(3).build().map(|p| p.install(|| gen_ok(&cfg)));
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .map(|p| p.install(|| gen_ok(&cfg)));
+    let three = rayon::ThreadPoolBuilder::new()
+        .num_threads(3)
+        .build()
+        .map(|p| p.install(|| gen_ok(&cfg)));
     match (one, three) {
         (Ok(a), Ok(b)) => assert_eq!(a.scene, b.scene),
         _ => panic!("thread pool creation failed"),
@@ -53,7 +70,10 @@ fn scene_validates_and_has_expected_shapes() {
         // View 0 of the ff cameras is exactly the identity; the GT principal point is the centre,
         // the ff one VGGT's (w/2, h/2) by default.
         let m0 = ff.cameras.cam_from_world[0];
-        assert_eq!(m0.fixed_view::<3, 3>(0, 0).into_owned(), nalgebra::Matrix3::identity());
+        assert_eq!(
+            m0.fixed_view::<3, 3>(0, 0).into_owned(),
+            nalgebra::Matrix3::identity()
+        );
         assert_eq!(m0.column(3).into_owned(), Vector3::zeros());
         for k in &s.gt.as_ref().expect("gt").cameras.intrinsics {
             assert_eq!((k[(0, 2)], k[(1, 2)]), (27.5, 20.5));
@@ -88,10 +108,21 @@ fn gt_depth_unprojects_to_gt_points() {
                     }
                     valid += 1;
                     let z = depth[p] as f64;
-                    let xc = Vector3::new((x as f64 - k[(0, 2)]) / k[(0, 0)] * z, (y as f64 - k[(1, 2)]) / k[(1, 1)] * z, z);
+                    let xc = Vector3::new(
+                        (x as f64 - k[(0, 2)]) / k[(0, 0)] * z,
+                        (y as f64 - k[(1, 2)]) / k[(1, 1)] * z,
+                        z,
+                    );
                     let xw = r.transpose() * (xc - t);
-                    let g = Vector3::new(gt.points[3 * p] as f64, gt.points[3 * p + 1] as f64, gt.points[3 * p + 2] as f64);
-                    assert!((xw - g).norm() < 1e-5 * (1.0 + z), "pixel {p}: {xw:?} vs {g:?}");
+                    let g = Vector3::new(
+                        gt.points[3 * p] as f64,
+                        gt.points[3 * p + 1] as f64,
+                        gt.points[3 * p + 2] as f64,
+                    );
+                    assert!(
+                        (xw - g).norm() < 1e-5 * (1.0 + z),
+                        "pixel {p}: {xw:?} vs {g:?}"
+                    );
                 }
             }
         }
@@ -112,7 +143,11 @@ fn object_scenes_have_sky_without_gt() {
             assert_eq!(gt.depth.as_ref().expect("depth")[p], 0.0);
             assert!(ff.conf[p] < 1.2, "sky confidence {}", ff.conf[p]);
             // Sky points are far: > 10x the mean distance (1) of the normalised ff frame.
-            let q = Vector3::new(ff.points[3 * p] as f64, ff.points[3 * p + 1] as f64, ff.points[3 * p + 2] as f64);
+            let q = Vector3::new(
+                ff.points[3 * p] as f64,
+                ff.points[3 * p + 1] as f64,
+                ff.points[3 * p + 2] as f64,
+            );
             assert!(q.norm() > 3.0, "sky point too near: {}", q.norm());
         }
     }
@@ -139,12 +174,21 @@ fn noiseless_match_is_the_projection_of_the_gt_point() {
                     assert_eq!(g, GtMatch::Sky);
                     continue;
                 }
-                let xw = Point3::new(gt.points[3 * p] as f64, gt.points[3 * p + 1] as f64, gt.points[3 * p + 2] as f64);
+                let xw = Point3::new(
+                    gt.points[3 * p] as f64,
+                    gt.points[3 * p + 1] as f64,
+                    gt.points[3 * p + 2] as f64,
+                );
                 let proj = gt.cameras.project(tgt, &xw);
                 match (g, proj) {
-                    (GtMatch::Visible { loc, .. }, Some(q)) | (GtMatch::Occluded(loc), Some(q)) | (GtMatch::OutOfView(loc), Some(q)) => {
+                    (GtMatch::Visible { loc, .. }, Some(q))
+                    | (GtMatch::Occluded(loc), Some(q))
+                    | (GtMatch::OutOfView(loc), Some(q)) => {
                         // GT points are stored as f32: allow their rounding (relative 1e-6 of the point).
-                        assert!((loc - q).norm() < 2e-3 + 1e-4 * q.norm(), "{loc:?} vs {q:?}");
+                        assert!(
+                            (loc - q).norm() < 2e-3 + 1e-4 * q.norm(),
+                            "{loc:?} vs {q:?}"
+                        );
                         checked += 1;
                         visible += usize::from(matches!(g, GtMatch::Visible { .. }));
                     }
@@ -154,12 +198,25 @@ fn noiseless_match_is_the_projection_of_the_gt_point() {
             }
         }
     }
-    assert!(checked > 0 && visible > checked / 4, "checked {checked}, visible {visible}");
+    assert!(
+        checked > 0 && visible > checked / 4,
+        "checked {checked}, visible {visible}"
+    );
 }
 
 fn rebuild_render(out: &SynthOutput) -> ggpt_synth::render::Render {
-    let cfg_kind = if out.scene.name.contains("room") { SceneKind::Room } else { SceneKind::Object };
-    let seed: u64 = out.scene.name.rsplit('s').next().and_then(|v| v.parse().ok()).expect("seed in name");
+    let cfg_kind = if out.scene.name.contains("room") {
+        SceneKind::Room
+    } else {
+        SceneKind::Object
+    };
+    let seed: u64 = out
+        .scene
+        .name
+        .rsplit('s')
+        .next()
+        .and_then(|v| v.parse().ok())
+        .expect("seed in name");
     let world = match cfg_kind {
         SceneKind::Room => ggpt_synth::world::build_room(seed, None),
         SceneKind::Object => ggpt_synth::world::build_object(seed),
@@ -167,7 +224,10 @@ fn rebuild_render(out: &SynthOutput) -> ggpt_synth::render::Render {
     let gt = out.scene.gt.as_ref().expect("gt");
     let r = ggpt_synth::render::render(&world, &gt.cameras, out.scene.dims);
     // The rebuilt render must equal the stored GT exactly.
-    assert_eq!(r.depth.iter().map(|v| *v as f32).collect::<Vec<_>>(), *gt.depth.as_ref().expect("depth"));
+    assert_eq!(
+        r.depth.iter().map(|v| *v as f32).collect::<Vec<_>>(),
+        *gt.depth.as_ref().expect("depth")
+    );
     r
 }
 
@@ -179,12 +239,16 @@ fn matches_diagonal_outliers_and_occlusion() {
     let gt = s.gt.as_ref().expect("gt");
     let render = rebuild_render(&out);
     for (mi, ms) in s.matches.iter().enumerate() {
-        let (mut vis, mut vis_far, mut occ, mut occ_low, mut sky, mut errs) = (0usize, 0usize, 0usize, 0usize, 0usize, Vec::new());
+        let (mut vis, mut vis_far, mut occ, mut occ_low, mut sky, mut errs) =
+            (0usize, 0usize, 0usize, 0usize, 0usize, Vec::new());
         for src in 0..d.n {
             for tgt in 0..d.n {
                 let base = (tgt * d.n + src) * d.hw();
                 for k in 0..d.hw() {
-                    let (mx, my) = (ms.pred_matches[2 * (base + k)], ms.pred_matches[2 * (base + k) + 1]);
+                    let (mx, my) = (
+                        ms.pred_matches[2 * (base + k)],
+                        ms.pred_matches[2 * (base + k) + 1],
+                    );
                     let score = ms.pred_scores[base + k];
                     if src == tgt {
                         assert_eq!((mx, my, score), ((k % d.w) as f32, (k / d.w) as f32, 1.0));
@@ -201,7 +265,8 @@ fn matches_diagonal_outliers_and_occlusion() {
                         }
                         GtMatch::Visible { loc, .. } => {
                             vis += 1;
-                            let e = ((mx as f64 - loc.x).powi(2) + (my as f64 - loc.y).powi(2)).sqrt();
+                            let e =
+                                ((mx as f64 - loc.x).powi(2) + (my as f64 - loc.y).powi(2)).sqrt();
                             vis_far += usize::from(e > 3.0);
                             errs.push(e);
                         }
@@ -213,14 +278,23 @@ fn matches_diagonal_outliers_and_occlusion() {
         assert!(occ > 0, "no occlusion in the test scene");
         let outlier = ms_outlier_ratio(mi);
         // Occluded entries get scores < 0.1 unless they were turned into outliers.
-        assert!(occ_low as f64 >= occ as f64 * (1.0 - 2.0 * outlier), "matcher {mi}: {occ_low}/{occ} occluded with low score");
+        assert!(
+            occ_low as f64 >= occ as f64 * (1.0 - 2.0 * outlier),
+            "matcher {mi}: {occ_low}/{occ} occluded with low score"
+        );
         // Gross outliers: about outlier_ratio of the visible entries land far from the truth.
         let far = vis_far as f64 / vis as f64;
-        assert!(far > 0.5 * outlier && far < 2.0 * outlier + 0.01, "matcher {mi}: far fraction {far}");
+        assert!(
+            far > 0.5 * outlier && far < 2.0 * outlier + 0.01,
+            "matcher {mi}: far fraction {far}"
+        );
         errs.sort_by(f64::total_cmp);
         let med = errs[errs.len() / 2];
         let sigma = [0.15, 0.3][mi];
-        assert!(med > 0.5 * sigma && med < 4.0 * sigma, "matcher {mi}: median error {med}");
+        assert!(
+            med > 0.5 * sigma && med < 4.0 * sigma,
+            "matcher {mi}: median error {med}"
+        );
         let _ = sky;
     }
 }
@@ -234,7 +308,11 @@ fn match_pass_rates_are_realistic() {
     let out = gen_ok(&small(SceneKind::Object, 9));
     for ms in &out.scene.matches {
         let st = match_stats(ms, out.scene.dims);
-        assert!(st.ba_pass > 0.1 && st.ba_pass < 0.9, "{}: {st:?}", ms.matcher);
+        assert!(
+            st.ba_pass > 0.1 && st.ba_pass < 0.9,
+            "{}: {st:?}",
+            ms.matcher
+        );
         assert!(st.dlt_pass >= st.ba_pass);
     }
     // Cycle error of the noiseless diagonal-free pair (0, 1): small for most passing entries.
@@ -248,7 +326,15 @@ fn match_pass_rates_are_realistic() {
 #[allow(clippy::needless_range_loop)]
 fn feedforward_error_statistics_and_confidence() {
     for kind in [SceneKind::Room, SceneKind::Object] {
-        let cfg = SynthConfig { kind, views: 4, width: 112, height: 84, seed: 11, matches: false, ..SynthConfig::default() };
+        let cfg = SynthConfig {
+            kind,
+            views: 4,
+            width: 112,
+            height: 84,
+            seed: 11,
+            matches: false,
+            ..SynthConfig::default()
+        };
         let out = gen_ok(&cfg);
         let s = &out.scene;
         let gt = s.gt.as_ref().expect("gt");
@@ -257,23 +343,43 @@ fn feedforward_error_statistics_and_confidence() {
         assert!(acc.auc5 > 5.0 && acc.auc5 < 75.0, "{kind}: {acc:?}");
         assert!(acc.auc10 > acc.auc5 && acc.auc10 < 92.0, "{kind}: {acc:?}");
         // Relative depth error: median ~ warp/noise level, a few % gross.
-        let mut rel: Vec<f64> = out.ff_rel_depth_error.iter().zip(&gt.mask).filter(|(_, m)| **m).map(|(e, _)| *e as f64).collect();
+        let mut rel: Vec<f64> = out
+            .ff_rel_depth_error
+            .iter()
+            .zip(&gt.mask)
+            .filter(|(_, m)| **m)
+            .map(|(e, _)| *e as f64)
+            .collect();
         rel.sort_by(f64::total_cmp);
         let med = rel[rel.len() / 2];
-        assert!(med > 0.002 && med < 0.03, "{kind}: median relative depth error {med}");
+        assert!(
+            med > 0.002 && med < 0.03,
+            "{kind}: median relative depth error {med}"
+        );
         let gross = rel.iter().filter(|e| **e > 0.05).count() as f64 / rel.len() as f64;
-        assert!(gross > 0.005 && gross < 0.2, "{kind}: gross fraction {gross}");
+        assert!(
+            gross > 0.005 && gross < 0.2,
+            "{kind}: gross fraction {gross}"
+        );
         // Confidence correlates with the actual per-pixel error of the GT-aligned prediction.
         let gt_ff: Vec<Point3<f64>> = (0..s.dims.pixels())
             .map(|p| {
-                let g = Point3::new(gt.points[3 * p] as f64, gt.points[3 * p + 1] as f64, gt.points[3 * p + 2] as f64);
-                ggpt_synth::feedforward::apply_3x4(&out.world_to_ff, &g)
+                let g = Point3::new(
+                    gt.points[3 * p] as f64,
+                    gt.points[3 * p + 1] as f64,
+                    gt.points[3 * p + 2] as f64,
+                );
+                ggpt_synth::feedforward::apply_3x4(&out.ff_from_world, &g)
             })
             .collect();
         let (mut c, mut e) = (Vec::new(), Vec::new());
         for p in 0..s.dims.pixels() {
             if gt.mask[p] {
-                let q = Vector3::new(ff.points[3 * p] as f64, ff.points[3 * p + 1] as f64, ff.points[3 * p + 2] as f64);
+                let q = Vector3::new(
+                    ff.points[3 * p] as f64,
+                    ff.points[3 * p + 1] as f64,
+                    ff.points[3 * p + 2] as f64,
+                );
                 e.push(-(q - gt_ff[p].coords).norm());
                 c.push(ff.conf[p] as f64);
             }
@@ -283,18 +389,36 @@ fn feedforward_error_statistics_and_confidence() {
         // FF cameras: rotation error a fraction of a degree to a few degrees vs GT in the ff frame.
         for v in 1..s.dims.n {
             let r = ff.cameras.rotation(v) * out.gt_cameras_ff.rotation(v).transpose();
-            let ang = ((r.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees();
+            let ang = ((r.trace() - 1.0) / 2.0)
+                .clamp(-1.0, 1.0)
+                .acos()
+                .to_degrees();
             assert!(ang < 4.0, "{kind}: view {v} rotation error {ang}");
             let f_ratio = ff.cameras.intrinsics[v][(0, 0)] / gt.cameras.intrinsics[v][(0, 0)];
-            assert!((f_ratio - 1.0).abs() > 0.005 && (f_ratio - 1.0).abs() < 0.1, "{kind}: focal ratio {f_ratio}");
+            assert!(
+                (f_ratio - 1.0).abs() > 0.005 && (f_ratio - 1.0).abs() < 0.1,
+                "{kind}: focal ratio {f_ratio}"
+            );
         }
     }
 }
 
 #[test]
 fn invalid_config_is_rejected() {
-    assert!(generate(&SynthConfig { width: 50, ..small(SceneKind::Room, 0) }).is_err());
-    assert!(generate(&SynthConfig { views: 1, ..small(SceneKind::Room, 0) }).is_err());
+    assert!(
+        generate(&SynthConfig {
+            width: 50,
+            ..small(SceneKind::Room, 0)
+        })
+        .is_err()
+    );
+    assert!(
+        generate(&SynthConfig {
+            views: 1,
+            ..small(SceneKind::Room, 0)
+        })
+        .is_err()
+    );
 }
 
 #[test]
@@ -309,9 +433,19 @@ fn scene_directory_round_trip() {
 
 #[test]
 fn principal_point_convention_sets_only_the_ff_intrinsics() {
-    let vggt = gen_ok(&SynthConfig { matches: false, ..small(SceneKind::Room, 3) });
-    let centre = gen_ok(&SynthConfig { matches: false, principal_point: ggpt_synth::PrincipalPoint::Centre, ..small(SceneKind::Room, 3) });
-    let (fv, fc) = (vggt.scene.ff.as_ref().expect("ff"), centre.scene.ff.as_ref().expect("ff"));
+    let vggt = gen_ok(&SynthConfig {
+        matches: false,
+        ..small(SceneKind::Room, 3)
+    });
+    let centre = gen_ok(&SynthConfig {
+        matches: false,
+        principal_point: ggpt_synth::PrincipalPoint::Centre,
+        ..small(SceneKind::Room, 3)
+    });
+    let (fv, fc) = (
+        vggt.scene.ff.as_ref().expect("ff"),
+        centre.scene.ff.as_ref().expect("ff"),
+    );
     for (kv, kc) in fv.cameras.intrinsics.iter().zip(&fc.cameras.intrinsics) {
         assert_eq!((kv[(0, 2)], kv[(1, 2)]), (28.0, 21.0));
         assert_eq!((kc[(0, 2)], kc[(1, 2)]), (27.5, 20.5));

@@ -30,8 +30,9 @@
 
 use std::path::{Path, PathBuf};
 
-
-use safetensors::tensor::{Dtype, TensorView};
+use ggpt_core::CoreError;
+use ggpt_core::chunk_input::{AsChunkView, ChunkInput, ChunkView};
+use ggpt_core::io::st::{Dtype, StFile, StWriter};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Result, TrainError, io_err};
@@ -64,6 +65,10 @@ impl Split {
 }
 
 /// One training chunk with ground truth (normalised chunk coordinates, `pipeline.md` §6).
+///
+/// The network input is a [`ChunkInput`] (the same struct a scene chunk record holds; its fields
+/// `ff_pts`, `ff_conf`, `geo_pts`, `geo_msk` are reachable through `Deref`); forwards plan the
+/// chunk through [`AsChunkView`], borrowing it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TrainChunk {
     /// Index of the scene in the manifest.
@@ -74,14 +79,10 @@ pub struct TrainChunk {
     pub radius: f64,
     /// Flat pixel indices, pixel order.
     pub pixels: Vec<u32>,
-    /// `(X_d - c) / r`.
-    pub ff_pts: Vec<[f32; 3]>,
-    /// Raw feed-forward confidence.
-    pub ff_conf: Vec<f32>,
-    /// `(X_s - c) / r` (0 where no DLT point).
-    pub geo_pts: Vec<[f32; 3]>,
-    /// Pixel has a DLT point.
-    pub geo_msk: Vec<bool>,
+    /// Network input, chunk frame, `[K]` each: `ff_pts = (X_d - c) / r`, raw confidence
+    /// `ff_conf`, `geo_pts = (X_s - c) / r` (0 where no DLT point) and the DLT mask `geo_msk`
+    /// (the same struct as a scene chunk record's input; reachable through `Deref`).
+    pub input: ChunkInput,
     /// `(X_gt - c) / r`, 0 where invalid.
     pub gt_pts: Vec<[f32; 3]>,
     /// Valid GT.
@@ -92,17 +93,42 @@ impl TrainChunk {
     /// A deterministic chunk of `k` pixels with arbitrary in-range values, a third of them with a
     /// DLT point and a fifth without GT (tests, benchmarks, fuzz seeds; `seed` varies the values).
     pub fn deterministic(scene: usize, k: usize, seed: u32) -> TrainChunk {
-        let f = |i: usize, a: u32| (((i as u32).wrapping_mul(2_654_435_761).wrapping_add(seed * 97 + a * 13)) % 1000) as f32 / 500.0 - 1.0;
+        let f = |i: usize, a: u32| {
+            (((i as u32)
+                .wrapping_mul(2_654_435_761)
+                .wrapping_add(seed * 97 + a * 13))
+                % 1000) as f32
+                / 500.0
+                - 1.0
+        };
         TrainChunk {
             scene,
             center: [0.5, -0.25, 2.0],
             radius: 0.3,
             pixels: (0..k as u32).map(|p| p * 3 + seed).collect(),
-            ff_pts: (0..k).map(|i| [f(i, 0), f(i, 1), f(i, 2)]).collect(),
-            ff_conf: (0..k).map(|i| 1.0 + (f(i, 3) + 1.0) * 2.0).collect(),
-            geo_pts: (0..k).map(|i| if i % 3 == 0 { [f(i, 4), f(i, 5), f(i, 6)] } else { [0.0; 3] }).collect(),
-            geo_msk: (0..k).map(|i| i % 3 == 0).collect(),
-            gt_pts: (0..k).map(|i| if i % 5 != 4 { [f(i, 0) * 0.9, f(i, 1) * 0.9, f(i, 2) * 0.9] } else { [0.0; 3] }).collect(),
+            input: ChunkInput {
+                ff_pts: (0..k).map(|i| [f(i, 0), f(i, 1), f(i, 2)]).collect(),
+                ff_conf: (0..k).map(|i| 1.0 + (f(i, 3) + 1.0) * 2.0).collect(),
+                geo_pts: (0..k)
+                    .map(|i| {
+                        if i % 3 == 0 {
+                            [f(i, 4), f(i, 5), f(i, 6)]
+                        } else {
+                            [0.0; 3]
+                        }
+                    })
+                    .collect(),
+                geo_msk: (0..k).map(|i| i % 3 == 0).collect(),
+            },
+            gt_pts: (0..k)
+                .map(|i| {
+                    if i % 5 != 4 {
+                        [f(i, 0) * 0.9, f(i, 1) * 0.9, f(i, 2) * 0.9]
+                    } else {
+                        [0.0; 3]
+                    }
+                })
+                .collect(),
             gt_msk: (0..k).map(|i| i % 5 != 4).collect(),
         }
     }
@@ -119,12 +145,19 @@ impl TrainChunk {
     pub fn num_tokens(&self) -> usize {
         self.len() + self.geo_msk.iter().filter(|&&m| m).count()
     }
-    /// The network input of this chunk. `geo_pts` rows without a DLT point are written as 0.
-    pub fn to_input(&self) -> ggpt_model::plan::ChunkInput {
-        ggpt_model::plan::ChunkInput {
+    /// An owned copy of the network input of this chunk, `geo_pts` rows without a DLT point
+    /// written as 0 (the network ignores those rows, so planning the borrowed chunk gives the
+    /// same result without the copy).
+    pub fn to_input(&self) -> ChunkInput {
+        ChunkInput {
             ff_pts: self.ff_pts.clone(),
             ff_conf: self.ff_conf.clone(),
-            geo_pts: self.geo_pts.iter().zip(&self.geo_msk).map(|(p, &m)| if m { *p } else { [0.0; 3] }).collect(),
+            geo_pts: self
+                .geo_pts
+                .iter()
+                .zip(&self.geo_msk)
+                .map(|(p, &m)| if m { *p } else { [0.0; 3] })
+                .collect(),
             geo_msk: self.geo_msk.clone(),
         }
     }
@@ -144,13 +177,36 @@ impl TrainChunk {
             }
         }
         let finite3 = |v: &[[f32; 3]]| v.iter().flatten().all(|x| x.is_finite());
-        if !finite3(&self.ff_pts) || !finite3(&self.geo_pts) || !finite3(&self.gt_pts) || !self.ff_conf.iter().all(|x| x.is_finite()) {
+        if !finite3(&self.ff_pts)
+            || !finite3(&self.geo_pts)
+            || !finite3(&self.gt_pts)
+            || !self.ff_conf.iter().all(|x| x.is_finite())
+        {
             return Err("non-finite value".into());
         }
         if !(self.radius.is_finite() && self.radius > 0.0) {
             return Err(format!("radius {} is not positive", self.radius));
         }
         Ok(())
+    }
+}
+
+impl AsChunkView for TrainChunk {
+    fn chunk_view(&self) -> ChunkView<'_> {
+        self.input.view()
+    }
+}
+
+impl std::ops::Deref for TrainChunk {
+    type Target = ChunkInput;
+    fn deref(&self) -> &ChunkInput {
+        &self.input
+    }
+}
+
+impl std::ops::DerefMut for TrainChunk {
+    fn deref_mut(&mut self) -> &mut ChunkInput {
+        &mut self.input
     }
 }
 
@@ -170,8 +226,8 @@ pub struct SceneEntry {
     /// Metres per SfM-frame unit (`1 / s` of the GT -> SfM similarity); converts chunk errors
     /// `|x̂ - x_gt| r` to metres for the validation AUC.
     pub metres_per_unit: f64,
-    /// Where the scene came from (`synthetic:<json config>` or the directory).
-    pub source: String,
+    /// Where the scene came from (rebuilt from it by `ggpt-train eval`).
+    pub source: crate::scene_source::SceneSource,
 }
 
 /// A shard of the chunk set.
@@ -224,12 +280,22 @@ fn split_slot(s: Split) -> usize {
 
 impl ChunkSetWriter {
     /// A writer into `dir` (created if needed).
-    pub fn new(dir: &Path, max_chunks_per_shard: usize, provenance: serde_json::Value) -> Result<Self> {
+    pub fn new(
+        dir: &Path,
+        max_chunks_per_shard: usize,
+        provenance: serde_json::Value,
+    ) -> Result<Self> {
         std::fs::create_dir_all(dir).map_err(io_err(dir))?;
         Ok(Self {
             dir: dir.to_path_buf(),
             max_chunks_per_shard: max_chunks_per_shard.max(1),
-            manifest: Manifest { format: FORMAT_NAME.into(), version: FORMAT_VERSION, provenance, scenes: Vec::new(), shards: Vec::new() },
+            manifest: Manifest {
+                format: FORMAT_NAME.into(),
+                version: FORMAT_VERSION,
+                provenance,
+                scenes: Vec::new(),
+                shards: Vec::new(),
+            },
             pending: [Vec::new(), Vec::new()],
         })
     }
@@ -247,8 +313,12 @@ impl ChunkSetWriter {
             .scenes
             .get(chunk.scene)
             .map(|s| s.split)
-            .ok_or_else(|| TrainError::Invalid(format!("chunk of unknown scene {}", chunk.scene)))?;
-        chunk.validate().map_err(|m| TrainError::Invalid(format!("chunk of scene {}: {m}", chunk.scene)))?;
+            .ok_or_else(|| {
+                TrainError::Invalid(format!("chunk of unknown scene {}", chunk.scene))
+            })?;
+        chunk
+            .validate()
+            .map_err(|m| TrainError::Invalid(format!("chunk of scene {}: {m}", chunk.scene)))?;
         let slot = split_slot(split);
         self.pending[slot].push(chunk);
         if self.pending[slot].len() >= self.max_chunks_per_shard {
@@ -262,7 +332,12 @@ impl ChunkSetWriter {
         if chunks.is_empty() {
             return Ok(());
         }
-        let index = self.manifest.shards.iter().filter(|s| s.split == split).count();
+        let index = self
+            .manifest
+            .shards
+            .iter()
+            .filter(|s| s.split == split)
+            .count();
         let file = format!("{}-{index:05}.safetensors", split.name());
         let path = self.dir.join(&file);
         let bytes = shard_bytes(&chunks)?;
@@ -283,13 +358,20 @@ impl ChunkSetWriter {
         self.flush(Split::Train)?;
         self.flush(Split::Val)?;
         let path = self.dir.join(MANIFEST);
-        let text = serde_json::to_string_pretty(&self.manifest).map_err(|e| TrainError::Format { path: path.clone(), message: e.to_string() })?;
+        let text =
+            serde_json::to_string_pretty(&self.manifest).map_err(|e| TrainError::Format {
+                path: path.clone(),
+                message: e.to_string(),
+            })?;
         ggpt_core::io::atomic::write_atomic(&path, |w| w.write_all(text.as_bytes()))?;
         Ok(self.manifest)
     }
 }
 
-fn le_bytes<T: Copy, const N: usize>(values: impl Iterator<Item = T>, to: impl Fn(T) -> [u8; N]) -> Vec<u8> {
+fn le_bytes<T: Copy, const N: usize>(
+    values: impl Iterator<Item = T>,
+    to: impl Fn(T) -> [u8; N],
+) -> Vec<u8> {
     values.flat_map(to).collect()
 }
 
@@ -303,50 +385,81 @@ pub fn shard_bytes(chunks: &[TrainChunk]) -> Result<Vec<u8>> {
         let last = offsets.last().copied().unwrap_or(0);
         offsets.push(last + ch.len() as i64);
     }
-    let pts = |f: fn(&TrainChunk) -> &Vec<[f32; 3]>| le_bytes(chunks.iter().flat_map(f).flatten().copied(), f32::to_le_bytes);
-    let msk = |f: fn(&TrainChunk) -> &Vec<bool>| chunks.iter().flat_map(f).map(|&b| u8::from(b)).collect::<Vec<u8>>();
-    let tensors: Vec<(&str, Dtype, Vec<usize>, Vec<u8>)> = vec![
-        ("offsets", Dtype::I64, vec![c + 1], le_bytes(offsets.iter().copied(), i64::to_le_bytes)),
-        ("scene", Dtype::I64, vec![c], le_bytes(chunks.iter().map(|ch| ch.scene as i64), i64::to_le_bytes)),
-        ("center", Dtype::F32, vec![c, 3], le_bytes(chunks.iter().flat_map(|ch| ch.center), f32::to_le_bytes)),
-        ("radius", Dtype::F64, vec![c], le_bytes(chunks.iter().map(|ch| ch.radius), f64::to_le_bytes)),
-        ("pixel", Dtype::I64, vec![t], le_bytes(chunks.iter().flat_map(|ch| ch.pixels.iter().map(|&p| i64::from(p))), i64::to_le_bytes)),
-        ("ff_pts", Dtype::F32, vec![t, 3], pts(|ch| &ch.ff_pts)),
-        ("ff_pts_conf", Dtype::F32, vec![t], le_bytes(chunks.iter().flat_map(|ch| ch.ff_conf.iter().copied()), f32::to_le_bytes)),
-        ("geo_pts", Dtype::F32, vec![t, 3], pts(|ch| &ch.geo_pts)),
-        ("geo_msks", Dtype::U8, vec![t], msk(|ch| &ch.geo_msk)),
-        ("gt_pts", Dtype::F32, vec![t, 3], pts(|ch| &ch.gt_pts)),
-        ("gt_msks", Dtype::U8, vec![t], msk(|ch| &ch.gt_msk)),
-    ];
-    let views: Vec<(String, TensorView<'_>)> = tensors
-        .iter()
-        .map(|(n, d, s, b)| TensorView::new(*d, s.clone(), b).map(|v| ((*n).to_string(), v)))
-        .collect::<std::result::Result<_, _>>()
-        .map_err(|e| TrainError::Invalid(format!("shard tensor: {e}")))?;
-    safetensors::serialize(views, None).map_err(|e| TrainError::Invalid(format!("shard serialisation: {e}")))
+    let pts = |f: fn(&TrainChunk) -> &Vec<[f32; 3]>| {
+        le_bytes(
+            chunks.iter().flat_map(f).flatten().copied(),
+            f32::to_le_bytes,
+        )
+    };
+    let msk = |f: fn(&TrainChunk) -> &Vec<bool>| {
+        chunks
+            .iter()
+            .flat_map(f)
+            .map(|&b| u8::from(b))
+            .collect::<Vec<u8>>()
+    };
+    let mut w = StWriter::new();
+    w.i64("offsets", &[c + 1], &offsets);
+    w.raw(
+        "scene",
+        Dtype::I64,
+        &[c],
+        le_bytes(chunks.iter().map(|ch| ch.scene as i64), i64::to_le_bytes),
+    );
+    w.raw(
+        "center",
+        Dtype::F32,
+        &[c, 3],
+        le_bytes(chunks.iter().flat_map(|ch| ch.center), f32::to_le_bytes),
+    );
+    w.raw(
+        "radius",
+        Dtype::F64,
+        &[c],
+        le_bytes(chunks.iter().map(|ch| ch.radius), f64::to_le_bytes),
+    );
+    w.raw(
+        "pixel",
+        Dtype::I64,
+        &[t],
+        le_bytes(
+            chunks
+                .iter()
+                .flat_map(|ch| ch.pixels.iter().map(|&p| i64::from(p))),
+            i64::to_le_bytes,
+        ),
+    );
+    w.raw("ff_pts", Dtype::F32, &[t, 3], pts(|ch| &ch.ff_pts));
+    w.raw(
+        "ff_pts_conf",
+        Dtype::F32,
+        &[t],
+        le_bytes(
+            chunks.iter().flat_map(|ch| ch.ff_conf.iter().copied()),
+            f32::to_le_bytes,
+        ),
+    );
+    w.raw("geo_pts", Dtype::F32, &[t, 3], pts(|ch| &ch.geo_pts));
+    w.raw("geo_msks", Dtype::U8, &[t], msk(|ch| &ch.geo_msk));
+    w.raw("gt_pts", Dtype::F32, &[t, 3], pts(|ch| &ch.gt_pts));
+    w.raw("gt_msks", Dtype::U8, &[t], msk(|ch| &ch.gt_msk));
+    w.finish(Path::new("shard"), None)
+        .map_err(|e| TrainError::Invalid(format!("shard serialisation: {e}")))
 }
 
-fn tensor<'a>(st: &'a safetensors::SafeTensors<'a>, name: &str, dtype: Dtype, shape: &[usize], path: &Path) -> Result<&'a [u8]> {
-    let shard_err = |message: String| TrainError::Shard { path: path.to_path_buf(), message };
-    let v = st.tensor(name).map_err(|e| shard_err(format!("tensor '{name}': {e}")))?;
-    if v.dtype() != dtype {
-        return Err(shard_err(format!("tensor '{name}' has dtype {:?}, expected {dtype:?}", v.dtype())));
+/// A shard reader error as a [`TrainError::Shard`] naming the shard (and the tensor).
+fn shard_error(path: &Path, e: CoreError) -> TrainError {
+    let message = match e {
+        CoreError::Format { key, message, .. } if key.is_empty() => message,
+        CoreError::Format { key, message, .. } => format!("tensor '{key}': {message}"),
+        other => other.to_string(),
+    };
+    TrainError::Shard {
+        path: path.to_path_buf(),
+        message,
     }
-    if v.shape() != shape {
-        return Err(shard_err(format!("tensor '{name}' has shape {:?}, expected {shape:?}", v.shape())));
-    }
-    Ok(v.data())
 }
 
-fn f32s(b: &[u8]) -> Vec<f32> {
-    b.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
-}
-fn i64s(b: &[u8]) -> Vec<i64> {
-    b.chunks_exact(8).map(|c| i64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]])).collect()
-}
-fn f64s(b: &[u8]) -> Vec<f64> {
-    b.chunks_exact(8).map(|c| f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]])).collect()
-}
 fn triples(v: &[f32]) -> Vec<[f32; 3]> {
     v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
 }
@@ -354,50 +467,83 @@ fn triples(v: &[f32]) -> Vec<[f32; 3]> {
 /// Parses shard bytes (already checksum-verified) into chunks; `path` names the shard in errors;
 /// `num_scenes` bounds the scene indices.
 pub fn parse_shard(bytes: &[u8], path: &Path, num_scenes: usize) -> Result<Vec<TrainChunk>> {
-    let shard_err = |message: String| TrainError::Shard { path: path.to_path_buf(), message };
-    let st = safetensors::SafeTensors::deserialize(bytes).map_err(|e| shard_err(format!("not a valid safetensors file: {e}")))?;
-    let off_view = st.tensor("offsets").map_err(|e| shard_err(format!("tensor 'offsets': {e}")))?;
-    let c = off_view.shape().first().copied().unwrap_or(0).saturating_sub(1);
-    let offsets = i64s(tensor(&st, "offsets", Dtype::I64, &[c + 1], path)?);
+    parse_shard_owned(bytes.to_vec(), path, num_scenes)
+}
+
+/// [`parse_shard`] of bytes the caller hands over (no copy of the shard).
+fn parse_shard_owned(bytes: Vec<u8>, path: &Path, num_scenes: usize) -> Result<Vec<TrainChunk>> {
+    let shard_err = |message: String| TrainError::Shard {
+        path: path.to_path_buf(),
+        message,
+    };
+    let st = StFile::from_bytes(path, bytes).map_err(|e| shard_error(path, e))?;
+    let c = st
+        .shape("offsets")
+        .map_err(|e| shard_error(path, e))?
+        .first()
+        .copied()
+        .unwrap_or(0)
+        .saturating_sub(1);
+    let read = |e| shard_error(path, e);
+    let offsets = st.i64("offsets", &[c + 1]).map_err(read)?;
     let t = offsets.last().copied().unwrap_or(0);
     if offsets.first() != Some(&0) || offsets.windows(2).any(|w| w[1] < w[0]) || t < 0 {
-        return Err(shard_err("offsets are not a non-decreasing sequence starting at 0".into()));
+        return Err(shard_err(
+            "offsets are not a non-decreasing sequence starting at 0".into(),
+        ));
     }
     let t = t as usize;
-    let scene = i64s(tensor(&st, "scene", Dtype::I64, &[c], path)?);
-    let center = f32s(tensor(&st, "center", Dtype::F32, &[c, 3], path)?);
-    let radius = f64s(tensor(&st, "radius", Dtype::F64, &[c], path)?);
-    let pixel = i64s(tensor(&st, "pixel", Dtype::I64, &[t], path)?);
-    let ff_pts = triples(&f32s(tensor(&st, "ff_pts", Dtype::F32, &[t, 3], path)?));
-    let ff_conf = f32s(tensor(&st, "ff_pts_conf", Dtype::F32, &[t], path)?);
-    let geo_pts = triples(&f32s(tensor(&st, "geo_pts", Dtype::F32, &[t, 3], path)?));
-    let geo_msk: Vec<bool> = tensor(&st, "geo_msks", Dtype::U8, &[t], path)?.iter().map(|&b| b != 0).collect();
-    let gt_pts = triples(&f32s(tensor(&st, "gt_pts", Dtype::F32, &[t, 3], path)?));
-    let gt_msk: Vec<bool> = tensor(&st, "gt_msks", Dtype::U8, &[t], path)?.iter().map(|&b| b != 0).collect();
+    let scene = st.i64("scene", &[c]).map_err(read)?;
+    let center = st.f32("center", &[c, 3]).map_err(read)?;
+    let radius = st.f64("radius", &[c]).map_err(read)?;
+    let pixel = st.i64("pixel", &[t]).map_err(read)?;
+    let ff_pts = triples(&st.f32("ff_pts", &[t, 3]).map_err(read)?);
+    let ff_conf = st.f32("ff_pts_conf", &[t]).map_err(read)?;
+    let geo_pts = triples(&st.f32("geo_pts", &[t, 3]).map_err(read)?);
+    let mask = |key: &str| -> Result<Vec<bool>> {
+        Ok(st
+            .u8(key, &[t])
+            .map_err(read)?
+            .iter()
+            .map(|&b| b != 0)
+            .collect())
+    };
+    let geo_msk = mask("geo_msks")?;
+    let gt_pts = triples(&st.f32("gt_pts", &[t, 3]).map_err(read)?);
+    let gt_msk = mask("gt_msks")?;
     let mut out = Vec::with_capacity(c);
     for i in 0..c {
         let (a, b) = (offsets[i] as usize, offsets[i + 1] as usize);
         let s = scene[i];
         if s < 0 || s as usize >= num_scenes {
-            return Err(shard_err(format!("chunk {i}: scene index {s} out of range ({num_scenes} scenes in the manifest)")));
+            return Err(shard_err(format!(
+                "chunk {i}: scene index {s} out of range ({num_scenes} scenes in the manifest)"
+            )));
         }
         let pixels = pixel[a..b]
             .iter()
-            .map(|&p| u32::try_from(p).map_err(|_| shard_err(format!("chunk {i}: pixel index {p} out of range"))))
+            .map(|&p| {
+                u32::try_from(p)
+                    .map_err(|_| shard_err(format!("chunk {i}: pixel index {p} out of range")))
+            })
             .collect::<Result<Vec<u32>>>()?;
         let chunk = TrainChunk {
             scene: s as usize,
             center: [center[3 * i], center[3 * i + 1], center[3 * i + 2]],
             radius: radius[i],
             pixels,
-            ff_pts: ff_pts[a..b].to_vec(),
-            ff_conf: ff_conf[a..b].to_vec(),
-            geo_pts: geo_pts[a..b].to_vec(),
-            geo_msk: geo_msk[a..b].to_vec(),
+            input: ChunkInput {
+                ff_pts: ff_pts[a..b].to_vec(),
+                ff_conf: ff_conf[a..b].to_vec(),
+                geo_pts: geo_pts[a..b].to_vec(),
+                geo_msk: geo_msk[a..b].to_vec(),
+            },
             gt_pts: gt_pts[a..b].to_vec(),
             gt_msk: gt_msk[a..b].to_vec(),
         };
-        chunk.validate().map_err(|m| shard_err(format!("chunk {i}: {m}")))?;
+        chunk
+            .validate()
+            .map_err(|m| shard_err(format!("chunk {i}: {m}")))?;
         out.push(chunk);
     }
     Ok(out)
@@ -417,14 +563,23 @@ impl ChunkSet {
     pub fn open(dir: &Path) -> Result<Self> {
         let path = dir.join(MANIFEST);
         let text = std::fs::read_to_string(&path).map_err(io_err(&path))?;
-        let manifest: Manifest = serde_json::from_str(&text).map_err(|e| TrainError::Format { path: path.clone(), message: e.to_string() })?;
+        let manifest: Manifest = serde_json::from_str(&text).map_err(|e| TrainError::Format {
+            path: path.clone(),
+            message: e.to_string(),
+        })?;
         if manifest.format != FORMAT_NAME || manifest.version != FORMAT_VERSION {
             return Err(TrainError::Format {
                 path,
-                message: format!("format '{}' v{}, expected '{FORMAT_NAME}' v{FORMAT_VERSION}", manifest.format, manifest.version),
+                message: format!(
+                    "format '{}' v{}, expected '{FORMAT_NAME}' v{FORMAT_VERSION}",
+                    manifest.format, manifest.version
+                ),
             });
         }
-        Ok(Self { dir: dir.to_path_buf(), manifest })
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            manifest,
+        })
     }
 
     /// Reads, verifies (size, CRC-32, shapes, finiteness) and parses every shard of `split`.
@@ -442,20 +597,36 @@ impl ChunkSet {
         // A mismatch is in the shard or in the manifest: the messages name both.
         let manifest = self.dir.join(MANIFEST);
         let m = manifest.display();
-        let bytes = std::fs::read(&path).map_err(|e| TrainError::Shard { path: path.clone(), message: format!("cannot read the shard listed in {m}: {e}") })?;
+        let bytes = std::fs::read(&path).map_err(|e| TrainError::Shard {
+            path: path.clone(),
+            message: format!("cannot read the shard listed in {m}: {e}"),
+        })?;
         if bytes.len() as u64 != shard.bytes {
             return Err(TrainError::Shard {
                 path,
-                message: format!("size {} bytes, {m} says {} (truncated or replaced shard, or edited manifest)", bytes.len(), shard.bytes),
+                message: format!(
+                    "size {} bytes, {m} says {} (truncated or replaced shard, or edited manifest)",
+                    bytes.len(),
+                    shard.bytes
+                ),
             });
         }
         let crc = crc32fast::hash(&bytes);
         if crc != shard.crc32 {
-            return Err(TrainError::Shard { path, message: format!("CRC-32 {crc:08x}, {m} says {:08x} (corrupt shard or edited manifest)", shard.crc32) });
+            return Err(TrainError::Shard {
+                path,
+                message: format!(
+                    "CRC-32 {crc:08x}, {m} says {:08x} (corrupt shard or edited manifest)",
+                    shard.crc32
+                ),
+            });
         }
-        let chunks = parse_shard(&bytes, &path, self.manifest.scenes.len())?;
+        let chunks = parse_shard_owned(bytes, &path, self.manifest.scenes.len())?;
         if chunks.len() != shard.chunks {
-            return Err(TrainError::Shard { path, message: format!("{} chunks, {m} says {}", chunks.len(), shard.chunks) });
+            return Err(TrainError::Shard {
+                path,
+                message: format!("{} chunks, {m} says {}", chunks.len(), shard.chunks),
+            });
         }
         Ok(chunks)
     }
@@ -471,7 +642,15 @@ pub(crate) mod tests {
     }
 
     fn scene(name: &str, split: Split) -> SceneEntry {
-        SceneEntry { name: name.into(), split, views: 2, height: 14, width: 14, metres_per_unit: 2.0, source: "test".into() }
+        SceneEntry {
+            name: name.into(),
+            split,
+            views: 2,
+            height: 14,
+            width: 14,
+            metres_per_unit: 2.0,
+            source: "test".into(),
+        }
     }
 
     fn write_set(dir: &Path) -> (Vec<TrainChunk>, Vec<TrainChunk>) {
@@ -492,7 +671,14 @@ pub(crate) mod tests {
         let dir = tempfile::tempdir().unwrap();
         let (train, val) = write_set(dir.path());
         let set = ChunkSet::open(dir.path()).unwrap();
-        assert_eq!(set.manifest.shards.iter().filter(|s| s.split == Split::Train).count(), 3);
+        assert_eq!(
+            set.manifest
+                .shards
+                .iter()
+                .filter(|s| s.split == Split::Train)
+                .count(),
+            3
+        );
         assert_eq!(set.load_split(Split::Train).unwrap(), train);
         assert_eq!(set.load_split(Split::Val).unwrap(), val);
     }
@@ -510,11 +696,17 @@ pub(crate) mod tests {
         bad[n - 5] ^= 0x40;
         std::fs::write(&shard, &bad).unwrap();
         let msg = set.load_split(Split::Train).unwrap_err().to_string();
-        assert!(msg.contains("train-00001.safetensors") && msg.contains("CRC-32"), "{msg}");
+        assert!(
+            msg.contains("train-00001.safetensors") && msg.contains("CRC-32"),
+            "{msg}"
+        );
         // truncated
         std::fs::write(&shard, &good[..good.len() / 2]).unwrap();
         let msg = set.load_split(Split::Train).unwrap_err().to_string();
-        assert!(msg.contains("train-00001.safetensors") && msg.contains("truncated"), "{msg}");
+        assert!(
+            msg.contains("train-00001.safetensors") && msg.contains("truncated"),
+            "{msg}"
+        );
         // missing
         std::fs::remove_file(&shard).unwrap();
         let msg = set.load_split(Split::Train).unwrap_err().to_string();

@@ -6,7 +6,6 @@ use burn::module::Module;
 use burn::tensor::Device;
 use ggpt_core::metrics::{auc_from_recalls, recalls_strict};
 use ggpt_core::{Scene, SfmResult};
-use ggpt_model::plan::ChunkInput;
 use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_scene::driver::{ChunkRefiner, RefineOptions, refine_scene};
 use serde::{Deserialize, Serialize};
@@ -36,12 +35,22 @@ pub struct ChunkValidation {
 
 fn aucs(errors_cm: &[f64]) -> Result<(f64, f64)> {
     let rec = recalls_strict(errors_cm, 10);
-    Ok((100.0 * auc_from_recalls(&rec, 5)?, 100.0 * auc_from_recalls(&rec, 10)?))
+    Ok((
+        100.0 * auc_from_recalls(&rec, 5)?,
+        100.0 * auc_from_recalls(&rec, 10)?,
+    ))
 }
 
 /// Runs the network in evaluation mode (BatchNorm running statistics, no drop path) on
 /// `chunks` in forwards of at most `max_tokens` tokens and measures the point accuracy.
-pub fn validate_chunks(model: &Ggpt, cfg: &GgptConfig, chunks: &[TrainChunk], scenes: &[SceneEntry], device: &Device, max_tokens: usize) -> Result<ChunkValidation> {
+pub fn validate_chunks(
+    model: &Ggpt,
+    cfg: &GgptConfig,
+    chunks: &[TrainChunk],
+    scenes: &[SceneEntry],
+    device: &Device,
+    max_tokens: usize,
+) -> Result<ChunkValidation> {
     let model = model.valid().fork(device);
     let (mut e_in, mut e_out) = (Vec::new(), Vec::new());
     let (mut loss_sum, mut forwards) = (0.0, 0usize);
@@ -54,21 +63,38 @@ pub fn validate_chunks(model: &Ggpt, cfg: &GgptConfig, chunks: &[TrainChunk], sc
             end += 1;
         }
         let group: Vec<&TrainChunk> = chunks[start..end].iter().collect();
-        let inputs: Vec<ChunkInput> = group.iter().map(|c| c.to_input()).collect();
-        let batch = ggpt_model::infer::prepare_chunks(cfg, &inputs, device)?;
+        let batch = ggpt_model::infer::prepare_chunks(cfg, &group, device)?;
         let out = model.forward(&batch);
-        let parts = loss(out.tokens_xyz.clone(), out.tokens_conf.clone(), &HostTargets::new(&group).upload(device));
-        loss_sum += ggpt_model::model::read_tensor_f32(&parts.total, "val loss")?.first().copied().unwrap_or(f32::NAN) as f64;
+        let parts = loss(
+            out.tokens_xyz.clone(),
+            out.tokens_conf.clone(),
+            &HostTargets::new(&group).upload(device),
+        );
+        loss_sum += ggpt_model::model::read_tensor_f32(&parts.total, "val loss")?
+            .first()
+            .copied()
+            .unwrap_or(f32::NAN) as f64;
         forwards += 1;
         for (c, o) in group.iter().zip(out.to_chunks(&batch)?) {
-            let mpu = scenes.get(c.scene).map(|s| s.metres_per_unit).ok_or_else(|| TrainError::Invalid(format!("chunk of unknown scene {}", c.scene)))?;
+            let mpu = scenes
+                .get(c.scene)
+                .map(|s| s.metres_per_unit)
+                .ok_or_else(|| {
+                    TrainError::Invalid(format!("chunk of unknown scene {}", c.scene))
+                })?;
             let to_cm = c.radius * mpu * 100.0;
             for i in 0..c.len() {
                 if !c.gt_msk[i] {
                     continue;
                 }
                 let g = c.gt_pts[i];
-                let d = |p: [f32; 3]| (((p[0] - g[0]) as f64).powi(2) + ((p[1] - g[1]) as f64).powi(2) + ((p[2] - g[2]) as f64).powi(2)).sqrt() * to_cm;
+                let d = |p: [f32; 3]| {
+                    (((p[0] - g[0]) as f64).powi(2)
+                        + ((p[1] - g[1]) as f64).powi(2)
+                        + ((p[2] - g[2]) as f64).powi(2))
+                    .sqrt()
+                        * to_cm
+                };
                 e_in.push(d(c.ff_pts[i]));
                 e_out.push(d(o.ff_pts_out[i]));
             }
@@ -113,15 +139,98 @@ pub struct HeldOutScene {
     pub chunks: usize,
 }
 
+/// Means of [`HeldOutScene`]s over the evaluated scenes (`ggpt-train eval`'s summary).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HeldOutSummary {
+    /// Scenes averaged.
+    pub scenes: usize,
+    /// Mean feed-forward AUC@5 cm.
+    pub ff_auc5: f64,
+    /// Mean feed-forward AUC@10 cm.
+    pub ff_auc10: f64,
+    /// Mean refined AUC@5 cm.
+    pub refined_auc5: f64,
+    /// Mean refined AUC@10 cm.
+    pub refined_auc10: f64,
+    /// Mean DLT AUC@5 over the scenes that have one (`None`: no scene has one).
+    pub sfm_auc5: Option<f64>,
+}
+
+impl HeldOutSummary {
+    /// The means over `results`; `None` when there is no result.
+    pub fn of(results: &[HeldOutScene]) -> Option<Self> {
+        if results.is_empty() {
+            return None;
+        }
+        let n = results.len() as f64;
+        let mean = |f: fn(&HeldOutScene) -> f64| results.iter().map(f).sum::<f64>() / n;
+        let sfm: Vec<f64> = results.iter().filter_map(|r| r.sfm_auc5).collect();
+        Some(HeldOutSummary {
+            scenes: results.len(),
+            ff_auc5: mean(|r| r.ff_auc5),
+            ff_auc10: mean(|r| r.ff_auc10),
+            refined_auc5: mean(|r| r.refined_auc5),
+            refined_auc10: mean(|r| r.refined_auc10),
+            sfm_auc5: (!sfm.is_empty()).then(|| sfm.iter().sum::<f64>() / sfm.len() as f64),
+        })
+    }
+
+    /// One line: `mean over N held-out scenes: AUC@5 a -> b (+d), AUC@10 ...`.
+    pub fn describe(&self) -> String {
+        format!(
+            "mean over {} held-out scenes: AUC@5 {:.1} -> {:.1} ({:+.1}), AUC@10 {:.1} -> {:.1} ({:+.1})",
+            self.scenes,
+            self.ff_auc5,
+            self.refined_auc5,
+            self.refined_auc5 - self.ff_auc5,
+            self.ff_auc10,
+            self.refined_auc10,
+            self.refined_auc10 - self.ff_auc10
+        )
+    }
+}
+
+impl HeldOutScene {
+    /// One table row: name, feed-forward and refined AUC@5/10, DLT AUC@5, coverage, chunks.
+    pub fn describe(&self) -> String {
+        format!(
+            "{:<28} ff AUC@5 {:5.1} AUC@10 {:5.1} | refined AUC@5 {:5.1} AUC@10 {:5.1} | DLT AUC@5 {} | covered {:.2} | {} chunks",
+            self.name,
+            self.ff_auc5,
+            self.ff_auc10,
+            self.refined_auc5,
+            self.refined_auc10,
+            self.sfm_auc5
+                .map_or("    -".to_string(), |v| format!("{v:5.1}")),
+            self.covered,
+            self.chunks
+        )
+    }
+}
+
 /// Refines a held-out scene with `refiner` (`pipeline.md` §3-§8) and evaluates the input and
 /// the refined points against GT with [`ggpt_eval::evaluate_refinement`] (seed
 /// [`HELD_OUT_EVAL_SEED`]).
-pub fn evaluate_scene(scene: &Scene, sfm: &SfmResult, refiner: &mut dyn ChunkRefiner, opts: &RefineOptions) -> Result<HeldOutScene> {
-    let gt = scene.gt.as_ref().ok_or_else(|| TrainError::Invalid(format!("scene {}: no GT", scene.name)))?;
+pub fn evaluate_scene(
+    scene: &Scene,
+    sfm: &SfmResult,
+    refiner: &mut dyn ChunkRefiner,
+    opts: &RefineOptions,
+) -> Result<HeldOutScene> {
+    let gt = scene
+        .gt
+        .as_ref()
+        .ok_or_else(|| TrainError::Invalid(format!("scene {}: no GT", scene.name)))?;
     let refined = refine_scene(scene, sfm, refiner, opts)?;
-    let ev = ggpt_eval::evaluate_refinement(scene, sfm, &refined.points, HELD_OUT_EVAL_SEED)?.summary;
+    let ev =
+        ggpt_eval::evaluate_refinement(scene, sfm, &refined.points, HELD_OUT_EVAL_SEED)?.summary;
     let n_gt = gt.mask.iter().filter(|&&m| m).count().max(1);
-    let cov = gt.mask.iter().zip(&refined.covered).filter(|(g, c)| **g && **c).count();
+    let cov = gt
+        .mask
+        .iter()
+        .zip(&refined.covered)
+        .filter(|(g, c)| **g && **c)
+        .count();
     Ok(HeldOutScene {
         name: scene.name.clone(),
         ff_auc5: ev.ff.auc_5,
@@ -132,4 +241,33 @@ pub fn evaluate_scene(scene: &Scene, sfm: &SfmResult, refiner: &mut dyn ChunkRef
         covered: cov as f64 / n_gt as f64,
         chunks: refined.chunks.len(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn held_out_summary_means() {
+        let r = |name: &str, a: f64, sfm: Option<f64>| HeldOutScene {
+            name: name.into(),
+            ff_auc5: a,
+            ff_auc10: a + 10.0,
+            refined_auc5: a + 20.0,
+            refined_auc10: a + 30.0,
+            sfm_auc5: sfm,
+            covered: 1.0,
+            chunks: 3,
+        };
+        assert_eq!(HeldOutSummary::of(&[]), None);
+        let s = HeldOutSummary::of(&[r("a", 10.0, Some(50.0)), r("b", 20.0, None)]).unwrap();
+        assert_eq!((s.scenes, s.ff_auc5, s.refined_auc10), (2, 15.0, 45.0));
+        assert_eq!(s.sfm_auc5, Some(50.0));
+        assert!(
+            s.describe().contains("AUC@5 15.0 -> 35.0 (+20.0)"),
+            "{}",
+            s.describe()
+        );
+        assert!(r("a", 1.0, None).describe().contains("DLT AUC@5     -"));
+    }
 }

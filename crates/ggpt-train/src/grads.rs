@@ -3,7 +3,7 @@
 //! under its official name, the BatchNorm running statistics after the forward and, for case 0
 //! on request, the parameters after one Adam step. Each case is its own batch and starts from
 //! the loaded weights, with drop path off and the configuration's BatchNorm momentum. This is the
-//! training loop's own code path (`TrainChunk::to_input`, `prepare_chunks`, `Ggpt::forward`,
+//! training loop's own code path (`prepare_chunks` on the borrowed `TrainChunk`, `Ggpt::forward`,
 //! `loss`, `trainer::adam`), so matching the official reference (`ggpt_small_train`) checks the
 //! trainer itself. `docs/training.md` explains how to use it.
 //!
@@ -16,13 +16,13 @@ use std::path::Path;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Tensor};
+use ggpt_core::io::st::{Dtype, StFile, StWriter};
 use ggpt_model::{Ggpt, GgptConfig};
-use safetensors::SafeTensors;
-use safetensors::tensor::{Dtype, TensorView};
 
 use crate::chunkset::TrainChunk;
 use crate::error::{Result, TrainError};
 use crate::loss::{HostTargets, loss};
+use ggpt_core::chunk_input::ChunkInput;
 
 /// One named f32 tensor (official name, PyTorch layout).
 #[derive(Debug, Clone, PartialEq)]
@@ -53,38 +53,71 @@ pub struct CaseResult {
 }
 
 fn format_err(path: &Path, message: String) -> TrainError {
-    TrainError::Format { path: path.to_path_buf(), message }
+    TrainError::Format {
+        path: path.to_path_buf(),
+        message,
+    }
 }
 
 /// Reads every `case{K}/...` of an input file as a training chunk (pixels `0..K`, centre 0,
 /// radius 1: the values are used as given).
 pub fn read_cases(path: &Path) -> Result<Vec<TrainChunk>> {
-    let bytes = std::fs::read(path).map_err(|e| format_err(path, format!("cannot read: {e}")))?;
-    let st = SafeTensors::deserialize(&bytes).map_err(|e| format_err(path, format!("invalid safetensors: {e}")))?;
+    let st = StFile::open(path)?;
     let mut cases = Vec::new();
     for k in 0.. {
         let p = format!("case{k}/");
-        if st.tensor(&format!("{p}ff_pts")).is_err() {
+        if !st.has(&format!("{p}ff_pts")) {
             break;
         }
-        let f32s = |name: &str| ggpt_model::chunk_io::read_f32(&st, &format!("{p}{name}"), path).map_err(TrainError::from);
-        let mask = |name: &str| ggpt_model::chunk_io::read_mask(&st, &format!("{p}{name}"), path).map_err(TrainError::from);
+        let f32s = |name: &str| -> Result<(Vec<usize>, Vec<f32>)> {
+            let key = format!("{p}{name}");
+            let dtype = st.dtype(&key)?;
+            if dtype != Dtype::F32 {
+                return Err(format_err(
+                    path,
+                    format!("{key}: expected F32, found {dtype:?}"),
+                ));
+            }
+            let t = st.f32_tensor(&key)?;
+            Ok((t.shape, t.data))
+        };
+        let mask = |name: &str| -> Result<(Vec<usize>, Vec<bool>)> {
+            let t = st.mask_tensor(&format!("{p}{name}"))?;
+            Ok((t.shape, t.data))
+        };
         let (s, ff) = f32s("ff_pts")?;
         let n = match s.as_slice() {
             [n, 3] => *n,
-            _ => return Err(format_err(path, format!("{p}ff_pts: shape {s:?}, expected [K, 3]"))),
+            _ => {
+                return Err(format_err(
+                    path,
+                    format!("{p}ff_pts: shape {s:?}, expected [K, 3]"),
+                ));
+            }
         };
         let points = |name: &str| -> Result<Vec<[f32; 3]>> {
             let (s, v) = f32s(name)?;
             if s != [n, 3] {
-                return Err(format_err(path, format!("{p}{name}: shape {s:?}, expected [{n}, 3]")));
+                return Err(format_err(
+                    path,
+                    format!("{p}{name}: shape {s:?}, expected [{n}, 3]"),
+                ));
             }
             if let Some(x) = v.iter().find(|x| !x.is_finite()) {
                 return Err(format_err(path, format!("{p}{name}: non-finite value {x}")));
             }
             Ok(v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
         };
-        let per_token = |s: Vec<usize>, name: &str| if s == [n] { Ok(()) } else { Err(format_err(path, format!("{p}{name}: shape {s:?}, expected [{n}]"))) };
+        let per_token = |s: Vec<usize>, name: &str| {
+            if s == [n] {
+                Ok(())
+            } else {
+                Err(format_err(
+                    path,
+                    format!("{p}{name}: shape {s:?}, expected [{n}]"),
+                ))
+            }
+        };
         let (s, ff_conf) = f32s("ff_pts_conf")?;
         per_token(s, "ff_pts_conf")?;
         let (s, geo_msk) = mask("geo_msks")?;
@@ -97,14 +130,18 @@ pub fn read_cases(path: &Path) -> Result<Vec<TrainChunk>> {
             center: [0.0; 3],
             radius: 1.0,
             pixels: (0..n as u32).collect(),
-            ff_pts,
-            ff_conf,
-            geo_pts: points("geo_pts")?,
-            geo_msk,
+            input: ChunkInput {
+                ff_pts,
+                ff_conf,
+                geo_pts: points("geo_pts")?,
+                geo_msk,
+            },
             gt_pts: points("gt_pts")?,
             gt_msk,
         };
-        chunk.validate().map_err(|m| format_err(path, format!("case{k}: {m}")))?;
+        chunk
+            .validate()
+            .map_err(|m| format_err(path, format!("case{k}: {m}")))?;
         cases.push(chunk);
     }
     if cases.is_empty() {
@@ -124,9 +161,17 @@ fn official_layout(burn_path: &str, shape: Vec<usize>, values: Vec<f32>) -> Name
                 t[j * r + i] = values[i * c + j];
             }
         }
-        return NamedTensor { name, shape: vec![c, r], values: t };
+        return NamedTensor {
+            name,
+            shape: vec![c, r],
+            values: t,
+        };
     }
-    NamedTensor { name, shape, values }
+    NamedTensor {
+        name,
+        shape,
+        values,
+    }
 }
 
 /// Collects the gradient of every parameter of `model` from `grads`, named officially.
@@ -149,11 +194,14 @@ impl ModuleVisitor for GradNamer<'_> {
     fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
         let path = self.path.join(".");
         // BatchNorm running statistics are module state, not parameters: they have no gradient.
-        if path.ends_with(".running_mean") || path.ends_with(".running_var") || self.error.is_some() {
+        if path.ends_with(".running_mean") || path.ends_with(".running_var") || self.error.is_some()
+        {
             return;
         }
         let Some(g) = self.grads.get::<D>(param.id) else {
-            self.error = Some(TrainError::Invalid(format!("parameter {path} received no gradient")));
+            self.error = Some(TrainError::Invalid(format!(
+                "parameter {path} received no gradient"
+            )));
             return;
         };
         let shape = g.dims().to_vec();
@@ -166,7 +214,12 @@ impl ModuleVisitor for GradNamer<'_> {
 
 /// The gradient of every trainable parameter of `model`, officially named, in module order.
 pub fn named_gradients(model: &Ggpt, grads: &GradientsParams) -> Result<Vec<NamedTensor>> {
-    let mut namer = GradNamer { grads, path: Vec::new(), out: Vec::new(), error: None };
+    let mut namer = GradNamer {
+        grads,
+        path: Vec::new(),
+        out: Vec::new(),
+        error: None,
+    };
     model.visit(&mut namer);
     match namer.error {
         Some(e) => Err(e),
@@ -179,11 +232,19 @@ pub fn named_parameters(model: &Ggpt) -> Result<Vec<NamedTensor>> {
     let dict = crate::export::official_state_dict(model, 0)?;
     let mut out = Vec::new();
     for (name, dtype, shape, bytes) in dict {
-        if dtype != Dtype::F32 || name.ends_with(".running_mean") || name.ends_with(".running_var") {
+        if dtype != Dtype::F32 || name.ends_with(".running_mean") || name.ends_with(".running_var")
+        {
             continue;
         }
-        let values = bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-        out.push(NamedTensor { name, shape, values });
+        let values = bytes
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        out.push(NamedTensor {
+            name,
+            shape,
+            values,
+        });
     }
     Ok(out)
 }
@@ -191,26 +252,52 @@ pub fn named_parameters(model: &Ggpt) -> Result<Vec<NamedTensor>> {
 /// Runs one case from the network `fresh` (loaded weights, plain device) on the autodiff
 /// `device`: train mode, drop path 0; with `adam_lr`, one Adam step (`trainer::adam`, no
 /// clipping) after the backward.
-pub fn run_case(fresh: &Ggpt, cfg: &GgptConfig, chunk: &TrainChunk, device: &Device, adam_lr: Option<f64>) -> Result<CaseResult> {
+pub fn run_case(
+    fresh: &Ggpt,
+    cfg: &GgptConfig,
+    chunk: &TrainChunk,
+    device: &Device,
+    adam_lr: Option<f64>,
+) -> Result<CaseResult> {
     // `train()` after `fork` gives the case its own running statistics (a clone shares them).
     let mut model = fresh.clone().fork(device).train();
     model.set_drop_path(0.0);
-    let batch = ggpt_model::infer::prepare_chunks(cfg, &[chunk.to_input()], device)?;
+    let batch = ggpt_model::infer::prepare_chunks(cfg, &[chunk], device)?;
     let out = model.forward(&batch);
-    let dense = out.to_chunks(&batch)?.into_iter().next().ok_or_else(|| TrainError::Invalid("no chunk output".into()))?;
-    let parts = loss(out.tokens_xyz, out.tokens_conf, &HostTargets::new(&[chunk]).upload(device));
-    let values = ggpt_model::model::read_tensor_f32(&Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0), "loss")?;
+    let dense = out
+        .to_chunks(&batch)?
+        .into_iter()
+        .next()
+        .ok_or_else(|| TrainError::Invalid("no chunk output".into()))?;
+    let parts = loss(
+        out.tokens_xyz,
+        out.tokens_conf,
+        &HostTargets::new(&[chunk]).upload(device),
+    );
+    let values = ggpt_model::model::read_tensor_f32(
+        &Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0),
+        "loss",
+    )?;
     let loss_terms = [values[0], values[1], values[2]];
     if loss_terms.iter().any(|x| !x.is_finite()) {
-        return Err(TrainError::Invalid(format!("non-finite loss terms {loss_terms:?}")));
+        return Err(TrainError::Invalid(format!(
+            "non-finite loss terms {loss_terms:?}"
+        )));
     }
     let mut bn_after = Vec::new();
     for (path, bn) in model.named_batch_norms() {
-        for (stat, state) in [("running_mean", &bn.running_mean), ("running_var", &bn.running_var)] {
+        for (stat, state) in [
+            ("running_mean", &bn.running_mean),
+            ("running_var", &bn.running_var),
+        ] {
             let t = state.value_sync();
             let name = format!("{path}.{stat}");
             let values = ggpt_model::model::read_tensor_f32(&t, &name)?;
-            bn_after.push(NamedTensor { name: ggpt_model::weights::official_key(&name), shape: t.dims().to_vec(), values });
+            bn_after.push(NamedTensor {
+                name: ggpt_model::weights::official_key(&name),
+                shape: t.dims().to_vec(),
+                values,
+            });
         }
     }
     let grads = GradientsParams::from_grads(parts.total.backward(), &model);
@@ -238,27 +325,30 @@ pub fn run_case(fresh: &Ggpt, cfg: &GgptConfig, chunk: &TrainChunk, device: &Dev
 /// `bn_after/<official name>.running_mean|running_var`, and `after_adam/<official name>` where
 /// an Adam step was taken.
 pub fn write_results(path: &Path, results: &[CaseResult]) -> Result<()> {
-    let mut owned: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
-    let bytes = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    let mut w = StWriter::new();
     for (k, r) in results.iter().enumerate() {
         let p = format!("case{k}/");
-        for (name, v) in [("loss", r.loss[0]), ("l_conf", r.loss[1]), ("l_id", r.loss[2])] {
-            owned.push((format!("{p}{name}"), vec![1], bytes(&[v])));
+        for (name, v) in [
+            ("loss", r.loss[0]),
+            ("l_conf", r.loss[1]),
+            ("l_id", r.loss[2]),
+        ] {
+            w.f32(&format!("{p}{name}"), &[1], &[v]);
         }
-        owned.push((format!("{p}ff_pts_out"), vec![r.ff_pts_conf_out.len(), 3], bytes(&r.ff_pts_out)));
-        owned.push((format!("{p}ff_pts_conf_out"), vec![r.ff_pts_conf_out.len()], bytes(&r.ff_pts_conf_out)));
-        for (group, list) in [("grad", Some(&r.grads)), ("bn_after", Some(&r.bn_after)), ("after_adam", r.after_adam.as_ref())] {
+        let k = r.ff_pts_conf_out.len();
+        w.f32(&format!("{p}ff_pts_out"), &[k, 3], &r.ff_pts_out);
+        w.f32(&format!("{p}ff_pts_conf_out"), &[k], &r.ff_pts_conf_out);
+        for (group, list) in [
+            ("grad", Some(&r.grads)),
+            ("bn_after", Some(&r.bn_after)),
+            ("after_adam", r.after_adam.as_ref()),
+        ] {
             for t in list.into_iter().flatten() {
-                owned.push((format!("{p}{group}/{}", t.name), t.shape.clone(), bytes(&t.values)));
+                w.f32(&format!("{p}{group}/{}", t.name), &t.shape, &t.values);
             }
         }
     }
-    let views: Vec<(String, TensorView<'_>)> = owned
-        .iter()
-        .map(|(n, s, b)| TensorView::new(Dtype::F32, s.clone(), b).map(|v| (n.clone(), v)))
-        .collect::<std::result::Result<_, _>>()
-        .map_err(|e| TrainError::Invalid(format!("safetensors view: {e}")))?;
-    let data = safetensors::serialize(views, None).map_err(|e| TrainError::Invalid(format!("safetensors: {e}")))?;
+    let data = w.finish(path, None)?;
     ggpt_core::io::atomic::write_bytes_atomic(path, &data)?;
     Ok(())
 }
@@ -281,10 +371,19 @@ pub fn bn_invariant_biases(cfg: &GgptConfig) -> Vec<String> {
         burn_paths.push(format!("dec.{s}.up.proj_skip.linear.bias"));
     }
     for (s, &d) in cfg.enc_depths.iter().enumerate() {
-        burn_paths.push(format!("enc.{s}.blocks.{}.mlp.fc2.bias", d.saturating_sub(1)));
+        burn_paths.push(format!(
+            "enc.{s}.blocks.{}.mlp.fc2.bias",
+            d.saturating_sub(1)
+        ));
     }
     for (s, &d) in cfg.dec_depths.iter().enumerate().skip(1) {
-        burn_paths.push(format!("dec.{s}.blocks.{}.mlp.fc2.bias", d.saturating_sub(1)));
+        burn_paths.push(format!(
+            "dec.{s}.blocks.{}.mlp.fc2.bias",
+            d.saturating_sub(1)
+        ));
     }
-    burn_paths.iter().map(|p| ggpt_model::weights::official_key(p)).collect()
+    burn_paths
+        .iter()
+        .map(|p| ggpt_model::weights::official_key(p))
+        .collect()
 }

@@ -10,6 +10,9 @@
 //!   `ggpt_scene::refine_scene`.
 //! * [`export`]: official `.safetensors` + `model_config.json`.
 //! * [`plot`]: the training-curve PNG.
+//! * [`scene_source`]: where a chunk-set scene came from, and how to rebuild it.
+//! * [`model_source`]: a model from any form the commands accept (model folder, run or
+//!   checkpoint directory, weight file).
 
 pub mod chunkset;
 pub mod error;
@@ -17,8 +20,10 @@ pub mod evaluate;
 pub mod export;
 pub mod grads;
 pub mod loss;
+pub mod model_source;
 pub mod plot;
 pub mod prepare;
+pub mod scene_source;
 pub mod trainer;
 
 pub use error::{Result, TrainError};

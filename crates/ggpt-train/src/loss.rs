@@ -111,7 +111,12 @@ pub struct LossParts {
 /// `sqrt(Σ_a (a - b)² + DIST_EPS)` per row: `[D, 3] -> [D]`.
 pub fn distance(a: Tensor<2>, b: Tensor<2>) -> Tensor<1> {
     let [d, _] = a.dims();
-    (a - b).square().sum_dim(1).add_scalar(DIST_EPS).sqrt().reshape([d])
+    (a - b)
+        .square()
+        .sum_dim(1)
+        .add_scalar(DIST_EPS)
+        .sqrt()
+        .reshape([d])
 }
 
 /// The loss from the network outputs over all tokens of the batch (`xyz [N, 3]`,
@@ -121,18 +126,30 @@ pub fn loss(xyz: Tensor<2>, conf: Tensor<1>, t: &Targets) -> LossParts {
     let idx3 = t.dense_index.clone().reshape([d, 1]).expand([d, 3]);
     let x = xyz.gather(0, idx3);
     let c = conf.gather(0, t.dense_index.clone());
-    let conf_term = (c.clone() * distance(x.clone(), t.gt.clone()) - c.log().mul_scalar(ALPHA)) * t.w_conf.clone();
+    let conf_term = (c.clone() * distance(x.clone(), t.gt.clone()) - c.log().mul_scalar(ALPHA))
+        * t.w_conf.clone();
     let id_term = distance(x, t.geo.clone()) * t.w_id.clone();
     let conf_sum = conf_term.sum();
     let id_sum = id_term.sum();
-    LossParts { total: conf_sum.clone() + id_sum.clone().mul_scalar(LAMBDA_ID), conf: conf_sum, id: id_sum }
+    LossParts {
+        total: conf_sum.clone() + id_sum.clone().mul_scalar(LAMBDA_ID),
+        conf: conf_sum,
+        id: id_sum,
+    }
 }
 
 /// Host reference of [`loss`] in f64 (no epsilon): `(L, L_conf, L_id)` from per-chunk outputs
 /// (`xyz[b][i]`, `conf[b][i]` for the dense tokens of chunk `b`).
-pub fn loss_host(chunks: &[&TrainChunk], xyz: &[Vec<[f64; 3]>], conf: &[Vec<f64>]) -> (f64, f64, f64) {
+pub fn loss_host(
+    chunks: &[&TrainChunk],
+    xyz: &[Vec<[f64; 3]>],
+    conf: &[Vec<f64>],
+) -> (f64, f64, f64) {
     let b = chunks.len().max(1) as f64;
-    let dist = |a: [f64; 3], g: [f32; 3]| ((a[0] - g[0] as f64).powi(2) + (a[1] - g[1] as f64).powi(2) + (a[2] - g[2] as f64).powi(2)).sqrt();
+    let dist = |a: [f64; 3], g: [f32; 3]| {
+        ((a[0] - g[0] as f64).powi(2) + (a[1] - g[1] as f64).powi(2) + (a[2] - g[2] as f64).powi(2))
+            .sqrt()
+    };
     let (mut lc, mut li) = (0.0, 0.0);
     for (k, c) in chunks.iter().enumerate() {
         let (mut sv, mut nv, mut sg, mut ng) = (0.0, 0usize, 0.0, 0usize);
@@ -160,6 +177,7 @@ pub fn loss_host(chunks: &[&TrainChunk], xyz: &[Vec<[f64; 3]>], conf: &[Vec<f64>
 mod tests {
     use super::*;
     use crate::chunkset::tests::toy_chunk;
+    use ggpt_core::chunk_input::ChunkInput;
 
     #[allow(deprecated)]
     fn dev() -> Device {
@@ -179,10 +197,12 @@ mod tests {
             center: [0.0; 3],
             radius: 1.0,
             pixels: vec![0, 1, 2],
-            ff_pts: vec![[0.0; 3]; 3],
-            ff_conf: vec![1.0; 3],
-            geo_pts: vec![[0.0, 0.0, 1.0], [0.0; 3], [0.0, 0.0, 0.0]],
-            geo_msk: vec![true, false, true],
+            input: ChunkInput {
+                ff_pts: vec![[0.0; 3]; 3],
+                ff_conf: vec![1.0; 3],
+                geo_pts: vec![[0.0, 0.0, 1.0], [0.0; 3], [0.0, 0.0, 0.0]],
+                geo_msk: vec![true, false, true],
+            },
             gt_pts: vec![[3.0, 4.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]],
             gt_msk: vec![true, false, true],
         };
@@ -191,15 +211,25 @@ mod tests {
             center: [0.0; 3],
             radius: 1.0,
             pixels: vec![5],
-            ff_pts: vec![[0.0; 3]],
-            ff_conf: vec![1.0],
-            geo_pts: vec![[0.0, 2.0, 0.0]],
-            geo_msk: vec![true],
+            input: ChunkInput {
+                ff_pts: vec![[0.0; 3]],
+                ff_conf: vec![1.0],
+                geo_pts: vec![[0.0, 2.0, 0.0]],
+                geo_msk: vec![true],
+            },
             gt_pts: vec![[0.0; 3]],
             gt_msk: vec![false],
         };
         // token order: A0 A1 A2 A_dlt0 A_dlt2 B0 B_dlt0  (N = 7)
-        let xyz = [[0.0f32, 0.0, 0.0], [9.0, 9.0, 9.0], [1.0, 0.0, 1.0], [5.0, 5.0, 5.0], [5.0, 5.0, 5.0], [0.0, 0.0, 0.0], [7.0, 7.0, 7.0]];
+        let xyz = [
+            [0.0f32, 0.0, 0.0],
+            [9.0, 9.0, 9.0],
+            [1.0, 0.0, 1.0],
+            [5.0, 5.0, 5.0],
+            [5.0, 5.0, 5.0],
+            [0.0, 0.0, 0.0],
+            [7.0, 7.0, 7.0],
+        ];
         let conf = [2.0f32, 3.0, 1.0, 9.0, 9.0, 4.0, 9.0];
         // A: V = {0, 2}: (2*5 - 0.2 ln 2 + 1*1 - 0.2 ln 1) / 2 = (11 - 0.2 ln 2) / 2
         //    G = {0, 2}: (|(0,0,0)-(0,0,1)| + |(1,0,1)-(0,0,0)|) / 2 = (1 + sqrt 2) / 2
@@ -210,7 +240,10 @@ mod tests {
         assert_eq!(t.dense_index, vec![0, 1, 2, 5]);
         let d = dev();
         let parts = loss(
-            Tensor::from_data(TensorData::new(xyz.iter().flatten().copied().collect::<Vec<f32>>(), [7, 3]), &d),
+            Tensor::from_data(
+                TensorData::new(xyz.iter().flatten().copied().collect::<Vec<f32>>(), [7, 3]),
+                &d,
+            ),
             Tensor::from_data(TensorData::new(conf.to_vec(), [7]), &d),
             &t.upload(&d),
         );
@@ -219,10 +252,17 @@ mod tests {
         assert!((scalar(parts.total) - (lc + li)).abs() < 1e-5);
         let host = loss_host(
             &[&a, &b],
-            &[vec![[0.0, 0.0, 0.0], [9.0; 3], [1.0, 0.0, 1.0]], vec![[0.0; 3]]],
+            &[
+                vec![[0.0, 0.0, 0.0], [9.0; 3], [1.0, 0.0, 1.0]],
+                vec![[0.0; 3]],
+            ],
             &[vec![2.0, 3.0, 1.0], vec![4.0]],
         );
-        assert!((host.0 - (lc + li)).abs() < 1e-12 && (host.1 - lc).abs() < 1e-12 && (host.2 - li).abs() < 1e-12);
+        assert!(
+            (host.0 - (lc + li)).abs() < 1e-12
+                && (host.1 - lc).abs() < 1e-12
+                && (host.2 - li).abs() < 1e-12
+        );
     }
 
     /// Autodiff gradient of the loss w.r.t. the outputs and the confidence logit against
@@ -247,14 +287,36 @@ mod tests {
             let mut xs = Vec::new();
             let mut cs = Vec::new();
             for (start, c) in [(0usize, &c0), (n0, &c1)] {
-                xs.push((0..c.len()).map(|i| [xyz[3 * (start + i)], xyz[3 * (start + i) + 1], xyz[3 * (start + i) + 2]]).collect::<Vec<_>>());
-                cs.push((0..c.len()).map(|i| 1.0 + h[start + i].exp()).collect::<Vec<_>>());
+                xs.push(
+                    (0..c.len())
+                        .map(|i| {
+                            [
+                                xyz[3 * (start + i)],
+                                xyz[3 * (start + i) + 1],
+                                xyz[3 * (start + i) + 2],
+                            ]
+                        })
+                        .collect::<Vec<_>>(),
+                );
+                cs.push(
+                    (0..c.len())
+                        .map(|i| 1.0 + h[start + i].exp())
+                        .collect::<Vec<_>>(),
+                );
             }
             (xs, cs)
         };
         let d = dev().autodiff();
-        let tx = Tensor::<2>::from_data(TensorData::new(xyz.iter().map(|&v| v as f32).collect::<Vec<f32>>(), [n, 3]), &d).require_grad();
-        let th = Tensor::<1>::from_data(TensorData::new(h.iter().map(|&v| v as f32).collect::<Vec<f32>>(), [n]), &d).require_grad();
+        let tx = Tensor::<2>::from_data(
+            TensorData::new(xyz.iter().map(|&v| v as f32).collect::<Vec<f32>>(), [n, 3]),
+            &d,
+        )
+        .require_grad();
+        let th = Tensor::<1>::from_data(
+            TensorData::new(h.iter().map(|&v| v as f32).collect::<Vec<f32>>(), [n]),
+            &d,
+        )
+        .require_grad();
         let conf = th.clone().exp().add_scalar(1.0);
         let parts = loss(tx.clone(), conf, &HostTargets::new(&chunks).upload(&d));
         let grads = parts.total.backward();
@@ -268,7 +330,8 @@ mod tests {
             m[j] -= eps;
             let (xp, cp) = split(&p, &h);
             let (xm, cm) = split(&m, &h);
-            let fd = (loss_host(&chunks, &xp, &cp).0 - loss_host(&chunks, &xm, &cm).0) / (2.0 * eps);
+            let fd =
+                (loss_host(&chunks, &xp, &cp).0 - loss_host(&chunks, &xm, &cm).0) / (2.0 * eps);
             worst = worst.max((fd - gx[j] as f64).abs());
         }
         for j in 0..n {
@@ -277,10 +340,14 @@ mod tests {
             m[j] -= eps;
             let (xp, cp) = split(&xyz, &p);
             let (xm, cm) = split(&xyz, &m);
-            let fd = (loss_host(&chunks, &xp, &cp).0 - loss_host(&chunks, &xm, &cm).0) / (2.0 * eps);
+            let fd =
+                (loss_host(&chunks, &xp, &cp).0 - loss_host(&chunks, &xm, &cm).0) / (2.0 * eps);
             worst = worst.max((fd - gh[j] as f64).abs());
         }
-        assert!(worst < 1e-4, "max |autodiff - finite difference| = {worst:e}");
+        assert!(
+            worst < 1e-4,
+            "max |autodiff - finite difference| = {worst:e}"
+        );
         // DLT-token rows get no gradient
         for j in c0.len()..n0 {
             assert_eq!(gx[3 * j], 0.0);

@@ -1,647 +1,28 @@
-//! The training-curve figure: PNG line plots through the `image` crate, with a built-in 5x7
-//! bitmap font (no font crate) for titles, axis titles, "nice" tick values and legends.
+//! The training-curve figure of `ggpt-train plot`, drawn with [`plotters`] into an RGB buffer
+//! (bitmap backend; text in the embedded DejaVu Sans through plotters' `ab_glyph` fonts, no
+//! system font lookup) and written as PNG.
 //!
-//! * [`draw_text`] / [`draw_text_up`]: ASCII text at an integer scale (unknown characters are
-//!   drawn as a box).
-//! * [`nice_ticks`]: 4–6 tick values on a 1/2/5 × 10^k grid.
-//! * [`plot_png`]: one labelled panel of arbitrary series.
-//! * [`read_metrics`] + [`write_figure`]: the `ggpt-train plot` figure of a `metrics.jsonl`,
-//!   training loss on top and held-out AUC@5/10 below, sharing the step axis.
+//! * [`read_metrics`] / [`parse_metrics`]: the training-loss and held-out validation lines of a
+//!   `metrics.jsonl`.
+//! * [`smooth`]: moving average of the noisy per-step loss.
+//! * [`render_figure`] / [`write_figure`]: training loss on top and held-out AUC@5/10 below,
+//!   sharing the step axis, each panel with a title and a legend above it and axis titles.
 
 use std::path::Path;
+use std::sync::OnceLock;
 
-use image::{Rgb, RgbImage};
+use image::RgbImage;
+use plotters::backend::RGBPixel;
+use plotters::coord::Shift;
+use plotters::element::DashedPathElement;
+use plotters::prelude::*;
+use plotters::style::register_font;
 
 use crate::error::{Result, TrainError, io_err};
 
 // ---------------------------------------------------------------------------------------------
-// Bitmap font
+// Metrics
 // ---------------------------------------------------------------------------------------------
-
-/// Glyph width in font pixels.
-pub const GLYPH_W: i64 = 5;
-/// Glyph height above the baseline (cap height) in font pixels.
-pub const GLYPH_H: i64 = 7;
-/// Rows below the baseline (descenders of `g j p q y , ;`).
-pub const DESCENT: i64 = 2;
-/// Rows of a glyph in the table: [`GLYPH_H`] + [`DESCENT`].
-pub const GLYPH_ROWS: usize = 9;
-/// Horizontal advance per character in font pixels (glyph + 1 column of spacing).
-pub const ADVANCE: i64 = 6;
-
-/// Glyph drawn for characters outside the table: a hollow box.
-pub const BOX_GLYPH: [u8; GLYPH_ROWS] = [0x1F, 0x11, 0x11, 0x11, 0x11, 0x11, 0x1F, 0x00, 0x00];
-
-/// 5x7 glyphs of printable ASCII `' '..='~'` (plus two descender rows), row-major from the
-/// top; bit 4 is the leftmost column.
-const FONT: [[u8; GLYPH_ROWS]; 95] = [
-    [0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00], // ' '
-    [0x04, 0x04, 0x04, 0x04, 0x04, 0x00, 0x04, 0x00, 0x00], // !
-    [0x0A, 0x0A, 0x0A, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00], // "
-    [0x0A, 0x0A, 0x1F, 0x0A, 0x1F, 0x0A, 0x0A, 0x00, 0x00], // #
-    [0x04, 0x0F, 0x14, 0x0E, 0x05, 0x1E, 0x04, 0x00, 0x00], // $
-    [0x18, 0x19, 0x02, 0x04, 0x08, 0x13, 0x03, 0x00, 0x00], // %
-    [0x0C, 0x12, 0x14, 0x08, 0x15, 0x12, 0x0D, 0x00, 0x00], // &
-    [0x0C, 0x04, 0x08, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00], // '
-    [0x02, 0x04, 0x08, 0x08, 0x08, 0x04, 0x02, 0x00, 0x00], // (
-    [0x08, 0x04, 0x02, 0x02, 0x02, 0x04, 0x08, 0x00, 0x00], // )
-    [0x00, 0x04, 0x15, 0x0E, 0x15, 0x04, 0x00, 0x00, 0x00], // *
-    [0x00, 0x04, 0x04, 0x1F, 0x04, 0x04, 0x00, 0x00, 0x00], // +
-    [0x00, 0x00, 0x00, 0x00, 0x00, 0x0C, 0x0C, 0x04, 0x08], // ,
-    [0x00, 0x00, 0x00, 0x1F, 0x00, 0x00, 0x00, 0x00, 0x00], // -
-    [0x00, 0x00, 0x00, 0x00, 0x00, 0x0C, 0x0C, 0x00, 0x00], // .
-    [0x00, 0x01, 0x02, 0x04, 0x08, 0x10, 0x00, 0x00, 0x00], // /
-    [0x0E, 0x11, 0x13, 0x15, 0x19, 0x11, 0x0E, 0x00, 0x00], // 0
-    [0x04, 0x0C, 0x04, 0x04, 0x04, 0x04, 0x0E, 0x00, 0x00], // 1
-    [0x0E, 0x11, 0x01, 0x02, 0x04, 0x08, 0x1F, 0x00, 0x00], // 2
-    [0x1F, 0x02, 0x04, 0x02, 0x01, 0x11, 0x0E, 0x00, 0x00], // 3
-    [0x02, 0x06, 0x0A, 0x12, 0x1F, 0x02, 0x02, 0x00, 0x00], // 4
-    [0x1F, 0x10, 0x1E, 0x01, 0x01, 0x11, 0x0E, 0x00, 0x00], // 5
-    [0x06, 0x08, 0x10, 0x1E, 0x11, 0x11, 0x0E, 0x00, 0x00], // 6
-    [0x1F, 0x01, 0x02, 0x04, 0x08, 0x08, 0x08, 0x00, 0x00], // 7
-    [0x0E, 0x11, 0x11, 0x0E, 0x11, 0x11, 0x0E, 0x00, 0x00], // 8
-    [0x0E, 0x11, 0x11, 0x0F, 0x01, 0x02, 0x0C, 0x00, 0x00], // 9
-    [0x00, 0x0C, 0x0C, 0x00, 0x0C, 0x0C, 0x00, 0x00, 0x00], // :
-    [0x00, 0x00, 0x0C, 0x0C, 0x00, 0x0C, 0x0C, 0x04, 0x08], // ;
-    [0x02, 0x04, 0x08, 0x10, 0x08, 0x04, 0x02, 0x00, 0x00], // <
-    [0x00, 0x00, 0x1F, 0x00, 0x1F, 0x00, 0x00, 0x00, 0x00], // =
-    [0x08, 0x04, 0x02, 0x01, 0x02, 0x04, 0x08, 0x00, 0x00], // >
-    [0x0E, 0x11, 0x01, 0x02, 0x04, 0x00, 0x04, 0x00, 0x00], // ?
-    [0x0E, 0x11, 0x01, 0x0D, 0x15, 0x15, 0x0E, 0x00, 0x00], // @
-    [0x0E, 0x11, 0x11, 0x11, 0x1F, 0x11, 0x11, 0x00, 0x00], // A
-    [0x1E, 0x11, 0x11, 0x1E, 0x11, 0x11, 0x1E, 0x00, 0x00], // B
-    [0x0E, 0x11, 0x10, 0x10, 0x10, 0x11, 0x0E, 0x00, 0x00], // C
-    [0x1C, 0x12, 0x11, 0x11, 0x11, 0x12, 0x1C, 0x00, 0x00], // D
-    [0x1F, 0x10, 0x10, 0x1E, 0x10, 0x10, 0x1F, 0x00, 0x00], // E
-    [0x1F, 0x10, 0x10, 0x1E, 0x10, 0x10, 0x10, 0x00, 0x00], // F
-    [0x0E, 0x11, 0x10, 0x17, 0x11, 0x11, 0x0F, 0x00, 0x00], // G
-    [0x11, 0x11, 0x11, 0x1F, 0x11, 0x11, 0x11, 0x00, 0x00], // H
-    [0x0E, 0x04, 0x04, 0x04, 0x04, 0x04, 0x0E, 0x00, 0x00], // I
-    [0x07, 0x02, 0x02, 0x02, 0x02, 0x12, 0x0C, 0x00, 0x00], // J
-    [0x11, 0x12, 0x14, 0x18, 0x14, 0x12, 0x11, 0x00, 0x00], // K
-    [0x10, 0x10, 0x10, 0x10, 0x10, 0x10, 0x1F, 0x00, 0x00], // L
-    [0x11, 0x1B, 0x15, 0x15, 0x11, 0x11, 0x11, 0x00, 0x00], // M
-    [0x11, 0x11, 0x19, 0x15, 0x13, 0x11, 0x11, 0x00, 0x00], // N
-    [0x0E, 0x11, 0x11, 0x11, 0x11, 0x11, 0x0E, 0x00, 0x00], // O
-    [0x1E, 0x11, 0x11, 0x1E, 0x10, 0x10, 0x10, 0x00, 0x00], // P
-    [0x0E, 0x11, 0x11, 0x11, 0x15, 0x12, 0x0D, 0x00, 0x00], // Q
-    [0x1E, 0x11, 0x11, 0x1E, 0x14, 0x12, 0x11, 0x00, 0x00], // R
-    [0x0F, 0x10, 0x10, 0x0E, 0x01, 0x01, 0x1E, 0x00, 0x00], // S
-    [0x1F, 0x04, 0x04, 0x04, 0x04, 0x04, 0x04, 0x00, 0x00], // T
-    [0x11, 0x11, 0x11, 0x11, 0x11, 0x11, 0x0E, 0x00, 0x00], // U
-    [0x11, 0x11, 0x11, 0x11, 0x11, 0x0A, 0x04, 0x00, 0x00], // V
-    [0x11, 0x11, 0x11, 0x15, 0x15, 0x15, 0x0A, 0x00, 0x00], // W
-    [0x11, 0x11, 0x0A, 0x04, 0x0A, 0x11, 0x11, 0x00, 0x00], // X
-    [0x11, 0x11, 0x11, 0x0A, 0x04, 0x04, 0x04, 0x00, 0x00], // Y
-    [0x1F, 0x01, 0x02, 0x04, 0x08, 0x10, 0x1F, 0x00, 0x00], // Z
-    [0x0E, 0x08, 0x08, 0x08, 0x08, 0x08, 0x0E, 0x00, 0x00], // [
-    [0x00, 0x10, 0x08, 0x04, 0x02, 0x01, 0x00, 0x00, 0x00], // \
-    [0x0E, 0x02, 0x02, 0x02, 0x02, 0x02, 0x0E, 0x00, 0x00], // ]
-    [0x04, 0x0A, 0x11, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00], // ^
-    [0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x1F, 0x00, 0x00], // _
-    [0x08, 0x04, 0x02, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00], // `
-    [0x00, 0x00, 0x0E, 0x01, 0x0F, 0x11, 0x0F, 0x00, 0x00], // a
-    [0x10, 0x10, 0x16, 0x19, 0x11, 0x11, 0x1E, 0x00, 0x00], // b
-    [0x00, 0x00, 0x0E, 0x10, 0x10, 0x11, 0x0E, 0x00, 0x00], // c
-    [0x01, 0x01, 0x0D, 0x13, 0x11, 0x11, 0x0F, 0x00, 0x00], // d
-    [0x00, 0x00, 0x0E, 0x11, 0x1F, 0x10, 0x0E, 0x00, 0x00], // e
-    [0x06, 0x09, 0x08, 0x1C, 0x08, 0x08, 0x08, 0x00, 0x00], // f
-    [0x00, 0x00, 0x0F, 0x11, 0x11, 0x11, 0x0F, 0x01, 0x0E], // g
-    [0x10, 0x10, 0x16, 0x19, 0x11, 0x11, 0x11, 0x00, 0x00], // h
-    [0x04, 0x00, 0x0C, 0x04, 0x04, 0x04, 0x0E, 0x00, 0x00], // i
-    [0x02, 0x00, 0x06, 0x02, 0x02, 0x02, 0x02, 0x12, 0x0C], // j
-    [0x10, 0x10, 0x12, 0x14, 0x18, 0x14, 0x12, 0x00, 0x00], // k
-    [0x0C, 0x04, 0x04, 0x04, 0x04, 0x04, 0x0E, 0x00, 0x00], // l
-    [0x00, 0x00, 0x1A, 0x15, 0x15, 0x11, 0x11, 0x00, 0x00], // m
-    [0x00, 0x00, 0x16, 0x19, 0x11, 0x11, 0x11, 0x00, 0x00], // n
-    [0x00, 0x00, 0x0E, 0x11, 0x11, 0x11, 0x0E, 0x00, 0x00], // o
-    [0x00, 0x00, 0x1E, 0x11, 0x11, 0x11, 0x1E, 0x10, 0x10], // p
-    [0x00, 0x00, 0x0F, 0x11, 0x11, 0x11, 0x0F, 0x01, 0x01], // q
-    [0x00, 0x00, 0x16, 0x19, 0x10, 0x10, 0x10, 0x00, 0x00], // r
-    [0x00, 0x00, 0x0E, 0x10, 0x0E, 0x01, 0x1E, 0x00, 0x00], // s
-    [0x08, 0x08, 0x1C, 0x08, 0x08, 0x09, 0x06, 0x00, 0x00], // t
-    [0x00, 0x00, 0x11, 0x11, 0x11, 0x13, 0x0D, 0x00, 0x00], // u
-    [0x00, 0x00, 0x11, 0x11, 0x11, 0x0A, 0x04, 0x00, 0x00], // v
-    [0x00, 0x00, 0x11, 0x11, 0x15, 0x15, 0x0A, 0x00, 0x00], // w
-    [0x00, 0x00, 0x11, 0x0A, 0x04, 0x0A, 0x11, 0x00, 0x00], // x
-    [0x00, 0x00, 0x11, 0x11, 0x11, 0x11, 0x0F, 0x01, 0x0E], // y
-    [0x00, 0x00, 0x1F, 0x02, 0x04, 0x08, 0x1F, 0x00, 0x00], // z
-    [0x02, 0x04, 0x04, 0x08, 0x04, 0x04, 0x02, 0x00, 0x00], // {
-    [0x04, 0x04, 0x04, 0x04, 0x04, 0x04, 0x04, 0x00, 0x00], // |
-    [0x08, 0x04, 0x04, 0x02, 0x04, 0x04, 0x08, 0x00, 0x00], // }
-    [0x00, 0x00, 0x08, 0x15, 0x02, 0x00, 0x00, 0x00, 0x00], // ~
-];
-
-/// Whether `c` has its own glyph (printable ASCII); other characters render as [`BOX_GLYPH`].
-pub fn is_supported(c: char) -> bool {
-    (' '..='~').contains(&c)
-}
-
-/// The 5x7 glyph of `c` (rows from the top, then the descender rows; bit 4 = leftmost
-/// column); [`BOX_GLYPH`] for characters outside printable ASCII.
-pub fn glyph(c: char) -> [u8; GLYPH_ROWS] {
-    if is_supported(c) { FONT[c as usize - ' ' as usize] } else { BOX_GLYPH }
-}
-
-/// Width in image pixels of `text` at `scale` (no trailing spacing column).
-pub fn text_width(text: &str, scale: u32) -> i64 {
-    let n = text.chars().count() as i64;
-    if n == 0 { 0 } else { (n * ADVANCE - 1) * scale as i64 }
-}
-
-/// Height in image pixels of one text line at `scale` above the baseline (descenders reach
-/// [`DESCENT`] font pixels lower).
-pub fn text_height(scale: u32) -> i64 {
-    GLYPH_H * scale as i64
-}
-
-/// `text`, shortened with ".." at the end when wider than `max_w` pixels at `scale`.
-pub fn fit_text(text: &str, max_w: i64, scale: u32) -> String {
-    if text_width(text, scale) <= max_w {
-        return text.to_string();
-    }
-    let n = ((max_w / scale.max(1) as i64 + 1) / ADVANCE).max(2) as usize;
-    text.chars().take(n - 2).chain("..".chars()).collect()
-}
-
-/// Sets one pixel, ignoring coordinates outside the image.
-fn put(img: &mut RgbImage, x: i64, y: i64, rgb: [u8; 3]) {
-    if x >= 0 && y >= 0 && x < img.width() as i64 && y < img.height() as i64 {
-        img.put_pixel(x as u32, y as u32, Rgb(rgb));
-    }
-}
-
-/// Fills the inclusive rectangle `[x0, x1] x [y0, y1]` (clipped to the image).
-fn fill(img: &mut RgbImage, x0: i64, y0: i64, x1: i64, y1: i64, rgb: [u8; 3]) {
-    for y in y0..=y1 {
-        for x in x0..=x1 {
-            put(img, x, y, rgb);
-        }
-    }
-}
-
-/// Calls `set(tx, ty)` for every lit pixel of `text` in text space (`tx` to the right, `ty`
-/// down, in image pixels at `scale`).
-fn for_text_pixels(text: &str, scale: u32, mut set: impl FnMut(i64, i64)) {
-    let s = scale.max(1) as i64;
-    for (i, c) in text.chars().enumerate() {
-        let g = glyph(c);
-        for (row, bits) in g.iter().enumerate() {
-            for col in 0..GLYPH_W {
-                if bits & (0x10 >> col) != 0 {
-                    let (gx, gy) = ((i as i64 * ADVANCE + col) * s, row as i64 * s);
-                    for dy in 0..s {
-                        for dx in 0..s {
-                            set(gx + dx, gy + dy);
-                        }
-                    }
-                }
-            }
-        }
-    }
-}
-
-/// Draws `text` with its top-left corner at `(x, y)`, every font pixel a `scale x scale`
-/// square; returns the drawn width ([`text_width`]). Pixels outside the image are dropped.
-pub fn draw_text(img: &mut RgbImage, x: i64, y: i64, text: &str, rgb: [u8; 3], scale: u32) -> i64 {
-    for_text_pixels(text, scale, |tx, ty| put(img, x + tx, y + ty, rgb));
-    text_width(text, scale)
-}
-
-/// Draws `text` rotated 90° counter-clockwise (reading bottom to top, as a y-axis title): the
-/// text starts at `(x, y)` = bottom-left corner of the rotated box and extends upwards; the
-/// box is [`text_height`] wide. Returns the drawn length.
-pub fn draw_text_up(img: &mut RgbImage, x: i64, y: i64, text: &str, rgb: [u8; 3], scale: u32) -> i64 {
-    for_text_pixels(text, scale, |tx, ty| put(img, x + ty, y - tx, rgb));
-    text_width(text, scale)
-}
-
-// ---------------------------------------------------------------------------------------------
-// Ticks
-// ---------------------------------------------------------------------------------------------
-
-/// Index range `(first, last)` of the multiples of `step` inside `[lo, hi]` (with a tiny
-/// tolerance so that end points on the grid count).
-fn tick_range(lo: f64, hi: f64, step: f64) -> (i64, i64) {
-    ((lo / step - 1e-9).ceil() as i64, (hi / step + 1e-9).floor() as i64)
-}
-
-/// The smallest step on the 1/2/5 × 10^k grid with at most `max_ticks` multiples inside
-/// `[lo, hi]`.
-pub fn nice_step(lo: f64, hi: f64, max_ticks: usize) -> f64 {
-    let span = (hi - lo).abs().max(f64::MIN_POSITIVE * 1e10);
-    let max_ticks = max_ticks.max(2) as i64;
-    let mut e = (span / max_ticks as f64).log10().floor() as i32 - 1;
-    loop {
-        for m in [1.0, 2.0, 5.0] {
-            let s = m * 10f64.powi(e);
-            let (a, b) = tick_range(lo, hi, s);
-            if b - a + 1 <= max_ticks {
-                return s;
-            }
-        }
-        e += 1;
-    }
-}
-
-/// "Nice" tick values inside `[lo, hi]`: the multiples of [`nice_step`] (at most `max_ticks`),
-/// e.g. `0.27..0.83` → 0.3, 0.4, …, 0.8 and `0..600` → 0, 200, 400, 600 for `max_ticks = 6`.
-pub fn nice_ticks(lo: f64, hi: f64, max_ticks: usize) -> Vec<f64> {
-    if !(lo.is_finite() && hi.is_finite()) || hi < lo {
-        return Vec::new();
-    }
-    let s = nice_step(lo, hi, max_ticks);
-    let (a, b) = tick_range(lo, hi, s);
-    (a..=b).map(|i| i as f64 * s).collect()
-}
-
-/// Number of decimals to print the multiples of `step` exactly.
-fn tick_decimals(step: f64) -> usize {
-    if step >= 1.0 { 0 } else { (-step.log10() - 1e-9).ceil().max(0.0) as usize }
-}
-
-/// Formats a tick value with `decimals` decimals (no "-0").
-fn format_tick(v: f64, decimals: usize) -> String {
-    let s = format!("{v:.decimals$}");
-    if s.starts_with('-') && s[1..].chars().all(|c| c == '0' || c == '.') { s[1..].to_string() } else { s }
-}
-
-/// A linear axis: displayed range, tick values and their labels.
-#[derive(Debug, Clone)]
-pub struct Axis {
-    /// Lower end of the displayed range.
-    pub lo: f64,
-    /// Upper end of the displayed range.
-    pub hi: f64,
-    /// Tick values (inside `[lo, hi]`).
-    pub ticks: Vec<f64>,
-    /// Tick labels.
-    pub labels: Vec<String>,
-}
-
-impl Axis {
-    /// An axis over `[lo, hi]` with 4–6 nice ticks where possible: when fewer than 4 multiples
-    /// of the step fall inside the range, the range grows by one step at the cheaper end (at
-    /// most twice). A degenerate range is widened around its value.
-    pub fn new(lo: f64, hi: f64) -> Axis {
-        let (mut lo, mut hi) = (lo, hi);
-        if hi - lo <= f64::EPSILON * lo.abs().max(hi.abs()).max(1.0) * 16.0 {
-            let d = (lo.abs() * 0.05).max(0.5);
-            lo -= d;
-            hi += d;
-        }
-        let mut step = nice_step(lo, hi, 6);
-        let count = |lo: f64, hi: f64, s: f64| {
-            let (a, b) = tick_range(lo, hi, s);
-            b - a + 1
-        };
-        for _ in 0..2 {
-            if count(lo, hi, step) >= 4 {
-                break;
-            }
-            let (a, b) = tick_range(lo, hi, step);
-            let (lo_ext, hi_ext) = ((a - 1) as f64 * step, (b + 1) as f64 * step);
-            if lo - lo_ext <= hi_ext - hi {
-                lo = lo_ext;
-            } else {
-                hi = hi_ext;
-            }
-        }
-        if count(lo, hi, step) < 4 {
-            step = nice_step(lo, hi, 8);
-        }
-        let (a, b) = tick_range(lo, hi, step);
-        let ticks: Vec<f64> = (a..=b).map(|i| i as f64 * step).collect();
-        let d = tick_decimals(step);
-        let labels = ticks.iter().map(|&t| format_tick(t, d)).collect();
-        Axis { lo, hi, ticks, labels }
-    }
-
-    /// [`Axis::new`] over the data range `[lo, hi]` padded by `pad` of its span on each side.
-    pub fn padded(lo: f64, hi: f64, pad: f64) -> Axis {
-        let d = (hi - lo) * pad;
-        Axis::new(lo - d, hi + d)
-    }
-}
-
-// ---------------------------------------------------------------------------------------------
-// Series and panels
-// ---------------------------------------------------------------------------------------------
-
-/// One series: `(x, y)` points (non-finite ones are skipped) and its style.
-#[derive(Debug, Clone)]
-pub struct Series {
-    /// Points.
-    pub points: Vec<(f64, f64)>,
-    /// Colour.
-    pub rgb: [u8; 3],
-    /// Line thickness in pixels.
-    pub thickness: u32,
-    /// Dashed line.
-    pub dashed: bool,
-    /// Square marker at every point.
-    pub markers: bool,
-    /// Legend label (no legend entry when empty).
-    pub label: String,
-}
-
-impl Series {
-    /// A solid 2-pixel line without label.
-    pub fn line(points: Vec<(f64, f64)>, rgb: [u8; 3]) -> Series {
-        Series { points, rgb, thickness: 2, dashed: false, markers: false, label: String::new() }
-    }
-    /// With line thickness `t`.
-    pub fn thickness(mut self, t: u32) -> Series {
-        self.thickness = t.max(1);
-        self
-    }
-    /// Dashed.
-    pub fn dashed(mut self) -> Series {
-        self.dashed = true;
-        self
-    }
-    /// With point markers.
-    pub fn markers(mut self) -> Series {
-        self.markers = true;
-        self
-    }
-    /// With a legend label.
-    pub fn label(mut self, l: impl Into<String>) -> Series {
-        self.label = l.into();
-        self
-    }
-    fn finite(&self) -> impl Iterator<Item = (f64, f64)> + '_ {
-        self.points.iter().copied().filter(|(x, y)| x.is_finite() && y.is_finite())
-    }
-}
-
-/// Plot extents `(x_min, x_max, y_min, y_max)` of the finite data points.
-pub type Extents = (f64, f64, f64, f64);
-
-/// Data extents of `series` (finite points only); `None` without any.
-pub fn extents(series: &[Series]) -> Option<Extents> {
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
-    for (x, y) in series.iter().flat_map(|s| s.finite()) {
-        x0 = x0.min(x);
-        x1 = x1.max(x);
-        y0 = y0.min(y);
-        y1 = y1.max(y);
-    }
-    x0.is_finite().then_some((x0, x1, y0, y1))
-}
-
-/// Inclusive pixel rectangle of a plot area.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Rect {
-    /// Left column.
-    pub x0: i64,
-    /// Top row.
-    pub y0: i64,
-    /// Right column.
-    pub x1: i64,
-    /// Bottom row.
-    pub y1: i64,
-}
-
-impl Rect {
-    /// Whether `(x, y)` lies inside.
-    pub fn contains(&self, x: i64, y: i64) -> bool {
-        x >= self.x0 && x <= self.x1 && y >= self.y0 && y <= self.y1
-    }
-}
-
-/// Text colour.
-const INK: [u8; 3] = [30, 30, 30];
-/// Axis frame and tick colour.
-const FRAME: [u8; 3] = [90, 90, 90];
-/// Grid line colour.
-const GRID: [u8; 3] = [228, 228, 228];
-/// Length of a tick mark outside the frame.
-const TICK_LEN: i64 = 5;
-/// Length of a line sample in the legend.
-const LEGEND_SAMPLE: i64 = 30;
-/// Gap between a legend sample and its label, in font pixels.
-const LEGEND_GAP: i64 = 4;
-
-/// Text of one panel (all optional).
-#[derive(Debug, Clone, Default)]
-pub struct PanelText {
-    /// Title line above the plot.
-    pub title: Option<String>,
-    /// Title under the x axis.
-    pub x_title: Option<String>,
-    /// Title left of the y axis (rotated).
-    pub y_title: Option<String>,
-}
-
-/// One-segment brush: a `t x t` square centred on `(x, y)`, clipped to `clip`.
-fn brush(img: &mut RgbImage, clip: &Rect, x: i64, y: i64, t: i64, rgb: [u8; 3]) {
-    let a = -(t - 1) / 2;
-    for dy in a..a + t {
-        for dx in a..a + t {
-            if clip.contains(x + dx, y + dy) {
-                put(img, x + dx, y + dy, rgb);
-            }
-        }
-    }
-}
-
-/// Draws the polyline `pts` (pixel coordinates) with the style of `s` (thickness, dashes along
-/// the walked length, markers at the vertices), clipped to `clip`.
-fn polyline(img: &mut RgbImage, clip: &Rect, pts: &[(i64, i64)], s: &Series) {
-    let t = s.thickness.max(1) as i64;
-    let (on, period) = (9 + 2 * t, 15 + 3 * t);
-    let mut walked = 0i64;
-    if let [p] = pts {
-        brush(img, clip, p.0, p.1, t, s.rgb);
-    }
-    for w in pts.windows(2) {
-        let (q, p) = (w[0], w[1]);
-        let n = (p.0 - q.0).abs().max((p.1 - q.1).abs()).max(1);
-        for i in 0..=n {
-            if i > 0 {
-                walked += 1;
-            }
-            if s.dashed && walked % period >= on {
-                continue;
-            }
-            let x = q.0 + ((p.0 - q.0) as f64 * i as f64 / n as f64).round() as i64;
-            let y = q.1 + ((p.1 - q.1) as f64 * i as f64 / n as f64).round() as i64;
-            brush(img, clip, x, y, t, s.rgb);
-        }
-    }
-    if s.markers {
-        let m = t + 4;
-        for p in pts {
-            brush(img, clip, p.0, p.1, m, s.rgb);
-        }
-    }
-}
-
-/// Layout of the legend entries of `series` within `width` pixels: rows of `(x offset, index)`.
-fn legend_rows(series: &[Series], width: i64, scale: u32) -> Vec<Vec<(i64, usize)>> {
-    let gap = 10 * scale as i64;
-    let mut rows: Vec<Vec<(i64, usize)>> = Vec::new();
-    let mut x = 0i64;
-    for (i, s) in series.iter().enumerate().filter(|(_, s)| !s.label.is_empty()) {
-        let w = LEGEND_SAMPLE + LEGEND_GAP * scale as i64 + text_width(&s.label, scale);
-        if rows.is_empty() || (x > 0 && x + w > width) {
-            rows.push(Vec::new());
-            x = 0;
-        }
-        rows.last_mut().expect("row").push((x, i));
-        x += w + gap;
-    }
-    rows
-}
-
-/// Total width of one legend row.
-fn legend_row_width(series: &[Series], row: &[(i64, usize)], scale: u32) -> i64 {
-    row.last().map_or(0, |&(x, i)| x + LEGEND_SAMPLE + LEGEND_GAP * scale as i64 + text_width(&series[i].label, scale))
-}
-
-/// Left margin (image left to plot area) that fits the y-axis title and the tick labels.
-fn left_margin(axes: &[&Axis], has_y_title: bool, scale: u32) -> i64 {
-    let label_w = axes.iter().flat_map(|a| a.labels.iter()).map(|l| text_width(l, scale)).max().unwrap_or(0);
-    let title = if has_y_title { text_height(scale) + 6 * scale as i64 } else { 0 };
-    4 * scale as i64 + title + label_w + 4 * scale as i64 + TICK_LEN
-}
-
-/// Draws one panel into the band `top..top + height` of `img`: title line with the legend
-/// (right-aligned on the title line when it fits, else on rows of its own), grid at the
-/// ticks, frame, tick marks and labels, axis titles and the series. Returns the plot area.
-#[allow(clippy::too_many_arguments)]
-fn draw_panel(
-    img: &mut RgbImage,
-    top: i64,
-    height: i64,
-    left: i64,
-    right: i64,
-    x_axis: &Axis,
-    y_axis: &Axis,
-    series: &[Series],
-    text: &PanelText,
-    scale: u32,
-) -> Rect {
-    let sc = scale as i64;
-    let th = text_height(scale);
-    let line = th + (DESCENT + 3) * sc;
-    let plot_w = right - left;
-    // title + legend
-    let mut y = top + 5 * sc;
-    // a title wider than the plot starts further left and, if still too wide, is shortened
-    let title_w = text.title.as_deref().map_or(0, |t| {
-        let title_x = if text_width(t, scale) <= plot_w { left } else { (right - text_width(t, scale)).max(4 * sc) };
-        let t = fit_text(t, right - title_x, scale);
-        draw_text(img, title_x, y, &t, INK, scale) - (left - title_x)
-    });
-    let rows = legend_rows(series, plot_w, scale);
-    let one_row_w = if rows.len() == 1 { legend_row_width(series, &rows[0], scale) } else { i64::MAX };
-    let legend_on_title = text.title.is_some() && rows.len() == 1 && title_w + 16 * sc + one_row_w <= plot_w;
-    let mut legend_at: Vec<(i64, i64, usize)> = Vec::new();
-    if legend_on_title {
-        let x = right - one_row_w;
-        legend_at.extend(rows[0].iter().map(|&(dx, i)| (x + dx, y, i)));
-    } else {
-        if text.title.is_some() {
-            y += line;
-        }
-        for row in &rows {
-            legend_at.extend(row.iter().map(|&(dx, i)| (left + dx, y, i)));
-            y += line;
-        }
-    }
-    if text.title.is_some() && (legend_on_title || rows.is_empty()) {
-        y += line;
-    }
-    let full = Rect { x0: 0, y0: 0, x1: img.width() as i64 - 1, y1: img.height() as i64 - 1 };
-    for &(x, ly, i) in &legend_at {
-        let s = &series[i];
-        let sample = Series { points: Vec::new(), markers: false, ..s.clone() };
-        polyline(img, &full, &[(x, ly + th / 2), (x + LEGEND_SAMPLE - 1, ly + th / 2)], &sample);
-        if s.markers {
-            brush(img, &full, x + LEGEND_SAMPLE / 2, ly + th / 2, s.thickness as i64 + 4, s.rgb);
-        }
-        draw_text(img, x + LEGEND_SAMPLE + LEGEND_GAP * sc, ly, &s.label, INK, scale);
-    }
-    let plot_top = y + 3 * sc;
-    let bottom_text = TICK_LEN + 3 * sc + th + if text.x_title.is_some() { 4 * sc + th } else { 0 } + 4 * sc;
-    let plot = Rect { x0: left, y0: plot_top, x1: right, y1: (top + height - 1 - bottom_text).max(plot_top + 1) };
-    let map_x = |x: f64| plot.x0 as f64 + (x - x_axis.lo) / (x_axis.hi - x_axis.lo) * (plot.x1 - plot.x0) as f64;
-    let map_y = |y: f64| plot.y1 as f64 - (y - y_axis.lo) / (y_axis.hi - y_axis.lo) * (plot.y1 - plot.y0) as f64;
-    // grid, ticks, labels
-    for (t, l) in x_axis.ticks.iter().zip(&x_axis.labels) {
-        let px = map_x(*t).round() as i64;
-        fill(img, px, plot.y0, px, plot.y1, GRID);
-        fill(img, px, plot.y1, px, plot.y1 + TICK_LEN, FRAME);
-        let w = text_width(l, scale);
-        let lx = (px - w / 2).clamp(0, img.width() as i64 - w);
-        draw_text(img, lx, plot.y1 + TICK_LEN + 3 * sc, l, INK, scale);
-    }
-    for (t, l) in y_axis.ticks.iter().zip(&y_axis.labels) {
-        let py = map_y(*t).round() as i64;
-        fill(img, plot.x0, py, plot.x1, py, GRID);
-        fill(img, plot.x0 - TICK_LEN, py, plot.x0, py, FRAME);
-        let w = text_width(l, scale);
-        draw_text(img, plot.x0 - TICK_LEN - 3 * sc - w, py - th / 2, l, INK, scale);
-    }
-    fill(img, plot.x0, plot.y0, plot.x1, plot.y0, FRAME);
-    fill(img, plot.x0, plot.y1, plot.x1, plot.y1, FRAME);
-    fill(img, plot.x0, plot.y0, plot.x0, plot.y1, FRAME);
-    fill(img, plot.x1, plot.y0, plot.x1, plot.y1, FRAME);
-    if let Some(t) = &text.x_title {
-        let w = text_width(t, scale);
-        draw_text(img, (plot.x0 + plot.x1) / 2 - w / 2, plot.y1 + TICK_LEN + 3 * sc + th + 4 * sc, t, INK, scale);
-    }
-    if let Some(t) = &text.y_title {
-        let w = text_width(t, scale);
-        draw_text_up(img, 4 * sc, (plot.y0 + plot.y1) / 2 + w / 2, t, INK, scale);
-    }
-    // series inside the frame, dashed ones first (underneath)
-    let inner = Rect { x0: plot.x0 + 1, y0: plot.y0 + 1, x1: plot.x1 - 1, y1: plot.y1 - 1 };
-    for s in series.iter().filter(|s| s.dashed).chain(series.iter().filter(|s| !s.dashed)) {
-        let pts: Vec<(i64, i64)> = s.finite().map(|(x, y)| (map_x(x).round() as i64, map_y(y).round() as i64)).collect();
-        polyline(img, &inner, &pts, s);
-    }
-    plot
-}
-
-/// Font scale for an image of `width x height`: 2 unless the image is small.
-fn auto_scale(width: u32, height: u32) -> u32 {
-    if width >= 480 && height >= 240 { 2 } else { 1 }
-}
-
-/// Draws `series` into a `width x height` PNG: white background, one panel with nice ticks
-/// and tick labels on both axes, grid lines at the ticks, a legend of the labelled series and
-/// the optional titles of `text`. Returns the data extents (finite points).
-pub fn plot_png_with(path: &Path, series: &[Series], width: u32, height: u32, text: &PanelText) -> Result<Extents> {
-    let e = extents(series).ok_or_else(|| TrainError::Invalid("plot: no finite point".into()))?;
-    let scale = auto_scale(width, height);
-    let x_axis = Axis::new(e.0, e.1);
-    let y_axis = Axis::padded(e.2, e.3, 0.05);
-    let mut img = RgbImage::from_pixel(width, height, Rgb([255, 255, 255]));
-    let left = left_margin(&[&y_axis], text.y_title.is_some(), scale);
-    let right = width as i64 - 1 - right_margin(&x_axis, scale);
-    draw_panel(&mut img, 0, height as i64, left, right, &x_axis, &y_axis, series, text, scale);
-    save(&img, path)?;
-    Ok(e)
-}
-
-/// [`plot_png_with`] without titles.
-pub fn plot_png(path: &Path, series: &[Series], width: u32, height: u32) -> Result<Extents> {
-    plot_png_with(path, series, width, height, &PanelText::default())
-}
-
-/// Right margin: half of the widest x tick label (the last one is centred on the frame).
-fn right_margin(x_axis: &Axis, scale: u32) -> i64 {
-    let w = x_axis.labels.last().map_or(0, |l| text_width(l, scale));
-    (w / 2 + 4 * scale as i64).max(12 * scale as i64)
-}
-
-/// Saves `img` as PNG (or whatever the extension says).
-fn save(img: &RgbImage, path: &Path) -> Result<()> {
-    img.save(path).map_err(|e| TrainError::Invalid(format!("{}: {e}", path.display())))
-}
 
 /// Moving average over `window` points (for noisy per-step losses).
 pub fn smooth(points: &[(f64, f64)], window: usize) -> Vec<(f64, f64)> {
@@ -650,14 +31,13 @@ pub fn smooth(points: &[(f64, f64)], window: usize) -> Vec<(f64, f64)> {
         .map(|i| {
             let a = i.saturating_sub(w - 1);
             let ys = &points[a..=i];
-            (points[i].0, ys.iter().map(|p| p.1).sum::<f64>() / ys.len() as f64)
+            (
+                points[i].0,
+                ys.iter().map(|p| p.1).sum::<f64>() / ys.len() as f64,
+            )
         })
         .collect()
 }
-
-// ---------------------------------------------------------------------------------------------
-// The metrics figure
-// ---------------------------------------------------------------------------------------------
 
 /// One held-out validation line of `metrics.jsonl` (`kind: "val"`); missing or null (NaN)
 /// values are NaN.
@@ -696,10 +76,15 @@ pub fn parse_metrics(text: &str, path: &Path) -> Result<Metrics> {
         if line.trim().is_empty() {
             continue;
         }
-        let v: serde_json::Value = serde_json::from_str(line)
-            .map_err(|e| TrainError::Format { path: path.to_path_buf(), message: format!("line {}: {e}", i + 1) })?;
+        let v: serde_json::Value = serde_json::from_str(line).map_err(|e| TrainError::Format {
+            path: path.to_path_buf(),
+            message: format!("line {}: {e}", i + 1),
+        })?;
         if !v.is_object() {
-            return Err(TrainError::Format { path: path.to_path_buf(), message: format!("line {}: not a JSON object", i + 1) });
+            return Err(TrainError::Format {
+                path: path.to_path_buf(),
+                message: format!("line {}: not a JSON object", i + 1),
+            });
         }
         let step = num(&v["step"]);
         if !step.is_finite() {
@@ -735,14 +120,19 @@ pub fn read_metrics(path: &Path) -> Result<Metrics> {
     parse_metrics(&text, path)
 }
 
+// ---------------------------------------------------------------------------------------------
+// The figure
+// ---------------------------------------------------------------------------------------------
+
 /// Options of the metrics figure.
 #[derive(Debug, Clone)]
 pub struct FigureOptions {
     /// Moving-average window of the training loss.
     pub smooth: usize,
-    /// Image width.
+    /// Image width (at least 200, at most [`MAX_SIDE`]).
     pub width: u32,
-    /// Height of each panel (the image is one or two panels high).
+    /// Height of each panel (the image is one or two panels high; at least 150, at most
+    /// [`MAX_SIDE`]).
     pub panel_height: u32,
     /// Name of the run, shown in the loss title.
     pub run_label: Option<String>,
@@ -750,9 +140,17 @@ pub struct FigureOptions {
 
 impl Default for FigureOptions {
     fn default() -> Self {
-        FigureOptions { smooth: 25, width: 1000, panel_height: 400, run_label: None }
+        FigureOptions {
+            smooth: 25,
+            width: 1000,
+            panel_height: 400,
+            run_label: None,
+        }
     }
 }
+
+/// Largest accepted image width and panel height in pixels.
+pub const MAX_SIDE: u32 = 16384;
 
 /// Raw per-step training loss (light red).
 pub const RAW_LOSS_RGB: [u8; 3] = [245, 175, 175];
@@ -766,6 +164,26 @@ pub const REFINED_AUC5_RGB: [u8; 3] = [30, 90, 200];
 pub const INPUT_AUC10_RGB: [u8; 3] = [175, 175, 175];
 /// AUC@10 of the refined points (light blue, dashed).
 pub const REFINED_AUC10_RGB: [u8; 3] = [130, 170, 235];
+
+/// Inclusive pixel rectangle of a plot area.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Rect {
+    /// Left column.
+    pub x0: i64,
+    /// Top row.
+    pub y0: i64,
+    /// Right column.
+    pub x1: i64,
+    /// Bottom row.
+    pub y1: i64,
+}
+
+impl Rect {
+    /// Whether `(x, y)` lies inside.
+    pub fn contains(&self, x: i64, y: i64) -> bool {
+        x >= self.x0 && x <= self.x1 && y >= self.y0 && y <= self.y1
+    }
+}
 
 /// What [`render_figure`] drew.
 #[derive(Debug, Clone)]
@@ -790,33 +208,392 @@ pub struct FigureSummary {
     pub val_plot: Option<Rect>,
 }
 
-/// Formats an optional number with one decimal ("n/a" for NaN).
-fn f1(v: f64) -> String {
-    if v.is_finite() { format!("{v:.1}") } else { "n/a".into() }
+/// The embedded font: DejaVu Sans (Bitstream Vera license, `assets/LICENSE-DejaVuSans.txt`).
+static FONT_TTF: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
+/// Family the embedded font is registered under (plotters' default for axis labels).
+const FONT: &str = "sans-serif";
+/// Font size of the panel titles.
+const TITLE_PX: f64 = 17.0;
+/// Font size of tick labels and legend entries.
+const TEXT_PX: f64 = 15.0;
+/// Font size of the axis titles.
+const DESC_PX: f64 = 16.0;
+/// Text colour.
+const INK: RGBColor = RGBColor(30, 30, 30);
+/// Axis and frame colour.
+const FRAME: RGBColor = RGBColor(90, 90, 90);
+/// Grid line colour.
+const GRID: RGBColor = RGBColor(228, 228, 228);
+/// Margin left of the y-axis title (plotters draws the rotated title slightly left of its
+/// label area).
+const LEFT_MARGIN: u32 = 10;
+/// Width left of the plot area for the y-axis title and tick labels (the same in both panels,
+/// so that their step axes line up).
+const Y_LABEL_AREA: u32 = 72;
+/// Height under the plot area for the x tick labels and the x-axis title.
+const X_LABEL_AREA: u32 = 48;
+/// Margin right of the plot area (room for the last x tick label).
+const RIGHT_MARGIN: u32 = 24;
+/// Space above the title line.
+const HEAD_PAD: i32 = 10;
+/// Height of the title line.
+const TITLE_LINE: i32 = 24;
+/// Height of one legend row.
+const LEGEND_LINE: i32 = 21;
+/// Length of a legend line sample.
+const LEGEND_SAMPLE: i32 = 30;
+/// Gap between a legend sample and its label.
+const LEGEND_GAP: i32 = 6;
+/// Gap between two legend entries.
+const LEGEND_SPACING: i32 = 20;
+
+/// One plotted series: `(x, y)` points (non-finite ones are skipped) and its style.
+struct Series {
+    points: Vec<(f64, f64)>,
+    rgb: [u8; 3],
+    width: u32,
+    dashed: bool,
+    markers: bool,
+    label: String,
 }
 
-/// Renders the metrics figure: the training-loss panel (raw per-step loss light, moving
-/// average bold) and, when there is at least one finite val value, the held-out AUC@5/AUC@10
-/// panel (input grey, refined blue; AUC@10 dashed and lighter) below it on the same step axis.
-pub fn render_figure(m: &Metrics, o: &FigureOptions) -> Result<(RgbImage, FigureSummary)> {
-    if m.train.is_empty() {
-        return Err(TrainError::Invalid("plot: no finite training loss yet".into()));
+impl Series {
+    fn new(points: Vec<(f64, f64)>, rgb: [u8; 3], width: u32, label: impl Into<String>) -> Self {
+        Series {
+            points: points
+                .into_iter()
+                .filter(|(x, y)| x.is_finite() && y.is_finite())
+                .collect(),
+            rgb,
+            width,
+            dashed: false,
+            markers: false,
+            label: label.into(),
+        }
+    }
+    fn style(&self) -> ShapeStyle {
+        let [r, g, b] = self.rgb;
+        RGBColor(r, g, b).filled().stroke_width(self.width)
+    }
+}
+
+/// Data extents `(x_min, x_max, y_min, y_max)` of `series`; `None` without any point.
+fn extents(series: &[Series]) -> Option<(f64, f64, f64, f64)> {
+    let mut pts = series.iter().flat_map(|s| s.points.iter().copied());
+    let (x, y) = pts.next()?;
+    Some(pts.fold((x, x, y, y), |e, (x, y)| {
+        (e.0.min(x), e.1.max(x), e.2.min(y), e.3.max(y))
+    }))
+}
+
+/// `[lo, hi]` padded by `pad` of its span on each side; a degenerate range is widened around
+/// its value.
+fn padded(lo: f64, hi: f64, pad: f64) -> (f64, f64) {
+    let span = hi - lo;
+    if span <= f64::EPSILON * lo.abs().max(hi.abs()).max(1.0) * 16.0 {
+        let d = (lo.abs() * 0.05).max(0.5);
+        (lo - d, hi + d)
+    } else {
+        (lo - span * pad, hi + span * pad)
+    }
+}
+
+/// One panel: its texts, y range and series.
+struct Panel<'a> {
+    title: String,
+    y_title: &'a str,
+    y_range: (f64, f64),
+    series: &'a [Series],
+}
+
+/// The drawing area of the figure.
+type Area<'a> = DrawingArea<BitMapBackend<'a, RGBPixel>, Shift>;
+
+/// Result of the drawing functions: errors as text (named with the output file by [`render`]).
+type DrawResult<T> = std::result::Result<T, String>;
+
+/// A drawing error as text.
+fn de(e: impl std::fmt::Display) -> String {
+    e.to_string()
+}
+
+/// Registers the embedded font with plotters (once per process).
+fn ensure_font() -> DrawResult<()> {
+    static REGISTERED: OnceLock<bool> = OnceLock::new();
+    if *REGISTERED.get_or_init(|| register_font(FONT, FontStyle::Normal, FONT_TTF).is_ok()) {
+        Ok(())
+    } else {
+        Err("the embedded font (DejaVu Sans) could not be loaded".into())
+    }
+}
+
+/// Text style of the embedded font at `px` in the text colour.
+fn text_style(px: f64) -> TextStyle<'static> {
+    (FONT, px).into_font().color(&INK)
+}
+
+/// Width in pixels of `text` in `style`.
+fn text_width(area: &Area, text: &str, style: &TextStyle) -> DrawResult<i32> {
+    let (w, _) = area.estimate_text_size(text, style).map_err(de)?;
+    Ok(w as i32)
+}
+
+/// Draws `text` in the embedded font at `px` with its top left corner at `(x, y)`, one glyph
+/// at a time: plotters' `ab_glyph` text drops each glyph's left side bearing, which spaces the
+/// letters unevenly ("loss p er step"), so every glyph is placed at its pen position plus its
+/// bearing here (the same advances and kerning as plotters' text width).
+fn draw_label(area: &Area, text: &str, px: f64, (x, y): (i32, i32)) -> DrawResult<()> {
+    use ab_glyph::{Font, ScaleFont};
+    let font = ab_glyph::FontRef::try_from_slice(FONT_TTF).map_err(de)?;
+    let font = font.as_scaled(px as f32);
+    let style = text_style(px);
+    let (mut pen, mut prev) = (0f32, None);
+    let mut utf8 = [0u8; 4];
+    for c in text.chars() {
+        let id = font.glyph_id(c);
+        if let Some(p) = prev {
+            pen += font.kern(p, id);
+        }
+        if let Some(g) = font.outline_glyph(font.scaled_glyph(c)) {
+            let left = (pen + g.px_bounds().min.x).round() as i32;
+            area.draw_text(c.encode_utf8(&mut utf8), &style, (x + left, y))
+                .map_err(de)?;
+        }
+        pen += font.h_advance(id);
+        prev = Some(id);
+    }
+    Ok(())
+}
+
+/// `text`, shortened with "…" at the end when wider than `max_w` pixels.
+fn fit_text(area: &Area, text: &str, style: &TextStyle, max_w: i32) -> DrawResult<String> {
+    if text_width(area, text, style)? <= max_w {
+        return Ok(text.to_string());
+    }
+    let mut chars: Vec<char> = text.chars().collect();
+    while !chars.is_empty() {
+        chars.pop();
+        let t: String = chars.iter().chain(['…'].iter()).collect();
+        if text_width(area, &t, style)? <= max_w {
+            return Ok(t);
+        }
+    }
+    Ok(String::new())
+}
+
+/// Layout of the legend entries of `series` within `width` pixels: rows of
+/// `(x offset, series index)`.
+fn legend_rows(area: &Area, series: &[Series], width: i32) -> DrawResult<Vec<Vec<(i32, usize)>>> {
+    let style = text_style(TEXT_PX);
+    let mut rows: Vec<Vec<(i32, usize)>> = Vec::new();
+    let mut x = 0;
+    for (i, s) in series.iter().enumerate() {
+        let w = LEGEND_SAMPLE + LEGEND_GAP + text_width(area, &s.label, &style)?;
+        match rows.last_mut() {
+            Some(row) if x + w <= width => row.push((x, i)),
+            _ => {
+                rows.push(vec![(0, i)]);
+                x = 0;
+            }
+        }
+        x += w + LEGEND_SPACING;
+    }
+    Ok(rows)
+}
+
+/// Draws one panel into `area`: title line and legend rows on top, then the chart (grid, axes
+/// with tick labels and titles, frame, series; dashed series underneath). Returns the plot area
+/// in image pixels.
+fn draw_panel(area: &Area, x_range: (f64, f64), p: &Panel) -> DrawResult<Rect> {
+    let (aw, _) = area.dim_in_pixel();
+    let plot_w = aw as i32 - (LEFT_MARGIN + Y_LABEL_AREA + RIGHT_MARGIN) as i32;
+    let rows = legend_rows(area, p.series, plot_w)?;
+    let head_h = HEAD_PAD + TITLE_LINE + rows.len() as i32 * LEGEND_LINE;
+    let (head, body) = area.split_vertically(head_h);
+    let mut chart = ChartBuilder::on(&body)
+        .margin_top(6)
+        .margin_bottom(2)
+        .margin_left(LEFT_MARGIN)
+        .margin_right(RIGHT_MARGIN)
+        .x_label_area_size(X_LABEL_AREA)
+        .y_label_area_size(Y_LABEL_AREA)
+        .build_cartesian_2d(x_range.0..x_range.1, p.y_range.0..p.y_range.1)
+        .map_err(de)?;
+    // whole-number tick labels on long ranges (steps, AUC in %); plotters' own formatting
+    // (at least one decimal) on short ones
+    let whole = |v: &f64| format!("{:.0}", v.round() + 0.0);
+    let mut mesh = chart.configure_mesh();
+    mesh.x_labels(8)
+        .y_labels(7)
+        .label_style(text_style(TEXT_PX))
+        .axis_desc_style(text_style(DESC_PX))
+        .x_desc("step")
+        .y_desc(p.y_title)
+        .bold_line_style(GRID)
+        .light_line_style(TRANSPARENT)
+        .axis_style(FRAME);
+    if x_range.1 - x_range.0 >= 10.0 {
+        mesh.x_label_formatter(&whole);
+    }
+    if p.y_range.1 - p.y_range.0 >= 10.0 {
+        mesh.y_label_formatter(&whole);
+    }
+    mesh.draw().map_err(de)?;
+    let dashed = p.series.iter().filter(|s| s.dashed);
+    for s in dashed.chain(p.series.iter().filter(|s| !s.dashed)) {
+        let pts = s.points.iter().copied();
+        if s.dashed {
+            chart
+                .draw_series(DashedLineSeries::new(pts, 10, 6, s.style()))
+                .map_err(de)?;
+        } else {
+            let points = if s.markers { s.width + 2 } else { 0 };
+            chart
+                .draw_series(LineSeries::new(pts, s.style()).point_size(points))
+                .map_err(de)?;
+        }
+    }
+    // frame around the plot area (the mesh draws the left and bottom axes only)
+    let (xr, yr) = chart.plotting_area().get_pixel_range();
+    let (bx, by) = area.get_base_pixel();
+    let (x0, y0, x1, y1) = (
+        xr.start - bx,
+        yr.start - by,
+        xr.end - 1 - bx,
+        yr.end - 1 - by,
+    );
+    area.draw(&Rectangle::new([(x0, y0), (x1, y1)], FRAME))
+        .map_err(de)?;
+    // title and legend, starting at the left edge of the plot area
+    let title_style = text_style(TITLE_PX);
+    let title = fit_text(&head, &p.title, &title_style, aw as i32 - x0 - 4)?;
+    draw_label(&head, &title, TITLE_PX, (x0, HEAD_PAD))?;
+    for (r, row) in rows.iter().enumerate() {
+        let y = HEAD_PAD + TITLE_LINE + r as i32 * LEGEND_LINE;
+        // vertical middle of the lower-case letters of the label
+        let yc = y + 3;
+        for &(dx, i) in row {
+            let s = &p.series[i];
+            let (x, style) = (x0 + dx, s.style());
+            let line = vec![(x, yc), (x + LEGEND_SAMPLE, yc)];
+            if s.dashed {
+                head.draw(&DashedPathElement::new(line, 8, 5, style))
+                    .map_err(de)?;
+            } else {
+                head.draw(&PathElement::new(line, style)).map_err(de)?;
+            }
+            if s.markers {
+                head.draw(&Circle::new(
+                    (x + LEGEND_SAMPLE / 2, yc),
+                    s.width + 2,
+                    style,
+                ))
+                .map_err(de)?;
+            }
+            let lx = x + LEGEND_SAMPLE + LEGEND_GAP;
+            draw_label(&head, &s.label, TEXT_PX, (lx, y))?;
+        }
+    }
+    Ok(Rect {
+        x0: i64::from(xr.start),
+        y0: i64::from(yr.start),
+        x1: i64::from(xr.end - 1),
+        y1: i64::from(yr.end - 1),
+    })
+}
+
+/// Draws the figure into `buf` (RGB8, `size`): the loss panel, and the val panel below it when
+/// given, each `panel_h` high. Returns their plot areas.
+fn draw_figure(
+    buf: &mut [u8],
+    size: (u32, u32),
+    panel_h: u32,
+    x_range: (f64, f64),
+    loss: &Panel,
+    val: Option<&Panel>,
+) -> DrawResult<(Rect, Option<Rect>)> {
+    ensure_font()?;
+    let root = BitMapBackend::<RGBPixel>::with_buffer_and_format(buf, size)
+        .map_err(de)?
+        .into_drawing_area();
+    root.fill(&WHITE).map_err(de)?;
+    let plots = match val {
+        Some(val) => {
+            let (top, bottom) = root.split_vertically(panel_h);
+            let loss_plot = draw_panel(&top, x_range, loss)?;
+            let val_plot = draw_panel(&bottom, x_range, val)?;
+            // thin separator between the panels
+            let y = panel_h as i32 - 1;
+            root.draw(&PathElement::new(
+                vec![(0, y), (size.0 as i32 - 1, y)],
+                GRID,
+            ))
+            .map_err(de)?;
+            (loss_plot, Some(val_plot))
+        }
+        None => (draw_panel(&root, x_range, loss)?, None),
+    };
+    root.present().map_err(de)?;
+    Ok(plots)
+}
+
+/// Formats an optional number with one decimal ("n/a" for NaN).
+fn f1(v: f64) -> String {
+    if v.is_finite() {
+        format!("{v:.1}")
+    } else {
+        "n/a".into()
+    }
+}
+
+/// [`render_figure`], with drawing errors naming `target`.
+fn render(m: &Metrics, o: &FigureOptions, target: &Path) -> Result<(RgbImage, FigureSummary)> {
+    if o.width > MAX_SIDE || o.panel_height > MAX_SIDE {
+        return Err(TrainError::Invalid(format!(
+            "plot: width {} / panel height {} above {MAX_SIDE} pixels",
+            o.width, o.panel_height
+        )));
     }
     let avg = smooth(&m.train, o.smooth);
-    let loss_series = vec![
-        Series::line(m.train.clone(), RAW_LOSS_RGB).thickness(1).label("loss per step"),
-        Series::line(avg.clone(), AVG_LOSS_RGB).thickness(3).label(format!("moving average ({} steps)", o.smooth.max(1))),
-    ];
-    let pick = |f: fn(&ValPoint) -> f64| -> Vec<(f64, f64)> { m.val.iter().map(|v| (v.step, f(v))).filter(|p| p.1.is_finite()).collect() };
-    let val_series: Vec<Series> = vec![
-        Series::line(pick(|v| v.input_auc5), INPUT_AUC5_RGB).markers().label("input AUC@5"),
-        Series::line(pick(|v| v.refined_auc5), REFINED_AUC5_RGB).markers().label("refined AUC@5"),
-        Series::line(pick(|v| v.input_auc10), INPUT_AUC10_RGB).dashed().label("input AUC@10"),
-        Series::line(pick(|v| v.refined_auc10), REFINED_AUC10_RGB).dashed().label("refined AUC@10"),
-    ];
-    let has_val = val_series.iter().any(|s| !s.points.is_empty());
-    let le = extents(&loss_series).expect("finite train points");
-    let ve = if has_val { extents(&val_series) } else { None };
+    let raw = Series::new(m.train.clone(), RAW_LOSS_RGB, 1, "loss per step");
+    let (Some(&last_avg), Some(le)) = (avg.last(), extents(std::slice::from_ref(&raw))) else {
+        return Err(TrainError::Invalid(
+            "plot: no finite training loss yet".into(),
+        ));
+    };
+    let avg_label = format!("moving average ({} steps)", o.smooth.max(1));
+    let loss_series = [raw, Series::new(avg, AVG_LOSS_RGB, 3, avg_label)];
+    let pick = |f: fn(&ValPoint) -> f64| -> Vec<(f64, f64)> {
+        m.val.iter().map(|v| (v.step, f(v))).collect()
+    };
+    // AUC@5 solid with markers, AUC@10 dashed
+    let val_series = [
+        (pick(|v| v.input_auc5), INPUT_AUC5_RGB, false, "input AUC@5"),
+        (
+            pick(|v| v.refined_auc5),
+            REFINED_AUC5_RGB,
+            false,
+            "refined AUC@5",
+        ),
+        (
+            pick(|v| v.input_auc10),
+            INPUT_AUC10_RGB,
+            true,
+            "input AUC@10",
+        ),
+        (
+            pick(|v| v.refined_auc10),
+            REFINED_AUC10_RGB,
+            true,
+            "refined AUC@10",
+        ),
+    ]
+    .map(|(points, rgb, dashed, label)| Series {
+        dashed,
+        markers: !dashed,
+        ..Series::new(points, rgb, 2, label)
+    });
+    let ve = extents(&val_series);
     let (mut x0, mut x1) = (le.0, le.1);
     if let Some(v) = ve {
         x0 = x0.min(v.0);
@@ -826,62 +603,92 @@ pub fn render_figure(m: &Metrics, o: &FigureOptions) -> Result<(RgbImage, Figure
     if x0 >= 0.0 && x0 <= 0.1 * x1 {
         x0 = 0.0;
     }
-    let x_axis = Axis::new(x0, x1);
-    let loss_axis = Axis::padded(le.2, le.3, 0.05);
-    let val_axis = ve.map(|v| Axis::padded(v.2, v.3, 0.06));
-    let scale = 2;
-    let (w, ph) = (o.width.max(200), o.panel_height.max(150));
-    let height = if has_val { 2 * ph } else { ph };
-    let mut img = RgbImage::from_pixel(w, height, Rgb([255, 255, 255]));
-    let mut axes = vec![&loss_axis];
-    axes.extend(val_axis.as_ref());
-    let left = left_margin(&axes, true, scale);
-    let right = w as i64 - 1 - right_margin(&x_axis, scale);
-    let last_avg = *avg.last().expect("non-empty");
-    let run = o.run_label.as_deref().map_or(String::new(), |r| format!(" (run {r})"));
-    let loss_text = PanelText {
-        title: Some(format!("Training loss{run}, step {:.0}: moving average {:.4}", last_avg.0, last_avg.1)),
-        x_title: Some("step".into()),
-        y_title: Some("loss".into()),
+    let x_range = if x1 > x0 {
+        (x0, x1)
+    } else {
+        padded(x0, x1, 0.0)
     };
-    let loss_plot = draw_panel(&mut img, 0, ph as i64, left, right, &x_axis, &loss_axis, &loss_series, &loss_text, scale);
-    let mut summary = FigureSummary {
+    let run = o
+        .run_label
+        .as_deref()
+        .map_or(String::new(), |r| format!(" (run {r})"));
+    let loss_panel = Panel {
+        title: format!(
+            "Training loss{run}, step {:.0}: moving average {:.4}",
+            last_avg.0, last_avg.1
+        ),
+        y_title: "loss",
+        y_range: padded(le.2, le.3, 0.05),
+        series: &loss_series,
+    };
+    let last_val = m.val.last().copied().filter(|_| ve.is_some());
+    let val_panel = match (ve, last_val) {
+        (Some(ve), Some(last)) => {
+            let chunks = last
+                .chunks
+                .map_or(String::new(), |c| format!(" ({c} chunks)"));
+            Some(Panel {
+                title: format!(
+                    "Held-out validation{chunks}, step {:.0}: AUC@5 input {} → refined {}",
+                    last.step,
+                    f1(last.input_auc5),
+                    f1(last.refined_auc5)
+                ),
+                y_title: "AUC (%)",
+                y_range: padded(ve.2, ve.3, 0.06),
+                series: &val_series,
+            })
+        }
+        _ => None,
+    };
+    let (w, ph) = (o.width.max(200), o.panel_height.max(150));
+    let h = if val_panel.is_some() { 2 * ph } else { ph };
+    let mut buf = vec![255u8; w as usize * h as usize * 3];
+    let draw_err = |message: String| TrainError::Format {
+        path: target.to_path_buf(),
+        message: format!("drawing the figure: {message}"),
+    };
+    let (loss_plot, val_plot) = draw_figure(
+        &mut buf,
+        (w, h),
+        ph,
+        x_range,
+        &loss_panel,
+        val_panel.as_ref(),
+    )
+    .map_err(draw_err)?;
+    let img = RgbImage::from_raw(w, h, buf)
+        .ok_or_else(|| draw_err(format!("buffer does not hold {w}x{h} RGB pixels")))?;
+    let summary = FigureSummary {
         width: w,
-        height,
+        height: h,
         steps,
         loss: (le.2, le.3),
         last_loss_avg: last_avg,
-        auc: None,
-        last_val: None,
+        auc: val_plot.and(ve).map(|v| (v.2, v.3)),
+        last_val: val_plot.and(last_val),
         loss_plot,
-        val_plot: None,
+        val_plot,
     };
-    if let (Some(va), Some(ve)) = (&val_axis, ve) {
-        let last = *m.val.last().expect("val lines");
-        let chunks = last.chunks.map_or(String::new(), |c| format!(" ({c} chunks)"));
-        let text = PanelText {
-            title: Some(format!(
-                "Held-out validation{chunks}, step {:.0}: AUC@5 input {} -> refined {}",
-                last.step,
-                f1(last.input_auc5),
-                f1(last.refined_auc5)
-            )),
-            x_title: Some("step".into()),
-            y_title: Some("AUC (%)".into()),
-        };
-        // thin separator between the panels
-        fill(&mut img, 0, ph as i64 - 1, w as i64 - 1, ph as i64 - 1, GRID);
-        summary.val_plot = Some(draw_panel(&mut img, ph as i64, ph as i64, left, right, &x_axis, va, &val_series, &text, scale));
-        summary.auc = Some((ve.2, ve.3));
-        summary.last_val = Some(last);
-    }
     Ok((img, summary))
 }
 
-/// [`render_figure`] written to `path` (PNG).
+/// Renders the metrics figure: the training-loss panel (raw per-step loss light, moving
+/// average bold) and, when there is at least one finite val value, the held-out AUC@5/AUC@10
+/// panel (input grey, refined blue; AUC@10 dashed and lighter) below it on the same step axis.
+pub fn render_figure(m: &Metrics, o: &FigureOptions) -> Result<(RgbImage, FigureSummary)> {
+    render(m, o, Path::new("(figure in memory)"))
+}
+
+/// [`render_figure`] written to `path` (PNG, atomically); drawing errors name `path`.
 pub fn write_figure(path: &Path, m: &Metrics, o: &FigureOptions) -> Result<FigureSummary> {
-    let (img, s) = render_figure(m, o)?;
-    save(&img, path)?;
+    let (img, s) = render(m, o, path)?;
+    ggpt_core::io::png::write_rgb8(
+        path,
+        img.width() as usize,
+        img.height() as usize,
+        img.as_raw(),
+    )?;
     Ok(s)
 }
 
@@ -891,107 +698,50 @@ mod tests {
 
     /// Number of pixels of colour `rgb` inside `r`.
     fn count(img: &RgbImage, r: &Rect, rgb: [u8; 3]) -> usize {
-        img.enumerate_pixels().filter(|(x, y, p)| r.contains(*x as i64, *y as i64) && p.0 == rgb).count()
+        img.enumerate_pixels()
+            .filter(|(x, y, p)| r.contains(i64::from(*x), i64::from(*y)) && p.0 == rgb)
+            .count()
+    }
+
+    /// Number of dark (text-coloured, anti-aliased included) pixels inside `r`.
+    fn ink(img: &RgbImage, r: &Rect) -> usize {
+        img.enumerate_pixels()
+            .filter(|(x, y, p)| {
+                r.contains(i64::from(*x), i64::from(*y)) && p.0.iter().all(|&c| c < 110)
+            })
+            .count()
     }
 
     #[test]
-    fn plot_font_covers_every_supported_character() {
-        let supported: Vec<char> = ('0'..='9')
-            .chain('A'..='Z')
-            .chain('a'..='z')
-            .chain(".-+%@()/:,_=<>[]!?#*'\"&$;^`{|}~\\".chars())
-            .collect();
-        for c in supported {
-            assert!(is_supported(c));
-            assert!(glyph(c).iter().any(|&r| r != 0), "empty glyph for {c:?}");
-            assert!(glyph(c).iter().all(|&r| r < 0x20), "glyph wider than 5 for {c:?}");
-            let mut img = RgbImage::from_pixel(20, 20, Rgb([255, 255, 255]));
-            draw_text(&mut img, 2, 2, &c.to_string(), [0, 0, 0], 2);
-            assert!(img.pixels().any(|p| p.0 == [0, 0, 0]), "nothing drawn for {c:?}");
-        }
-        assert!(glyph(' ').iter().all(|&r| r == 0));
-        // every printable ASCII character but space has a distinct, non-empty glyph
-        let all: Vec<[u8; GLYPH_ROWS]> = ('!'..='~').map(glyph).collect();
-        for (i, g) in all.iter().enumerate() {
-            assert!(g.iter().any(|&r| r != 0));
-            assert!(all[i + 1..].iter().all(|h| h != g), "duplicate glyph {:?}", (b'!' + i as u8) as char);
-        }
-        for c in ['é', '→', '\t', 'µ'] {
-            assert!(!is_supported(c));
-            assert_eq!(glyph(c), BOX_GLYPH);
-        }
-        // scale 2: a 10x14 box outline
-        let mut img = RgbImage::from_pixel(16, 20, Rgb([255, 255, 255]));
-        assert_eq!(draw_text(&mut img, 1, 1, "é", [0, 0, 0], 2), 10);
-        assert_eq!(img.get_pixel(1, 1).0, [0, 0, 0]);
-        assert_eq!(img.get_pixel(10, 14).0, [0, 0, 0]);
-        assert_eq!(img.get_pixel(5, 7).0, [255, 255, 255]);
-        assert_eq!(text_width("AUC (%)", 2), (7 * 6 - 1) * 2);
-        assert_eq!(fit_text("AUC (%)", 1000, 2), "AUC (%)");
-        let f = fit_text("a long title line", 100, 2);
-        assert!(f.ends_with("..") && text_width(&f, 2) <= 100 && text_width(&f, 2) > 100 - 2 * 6 * 2, "{f}");
-        // rotated text draws the same number of pixels
-        let mut a = RgbImage::from_pixel(100, 100, Rgb([255, 255, 255]));
-        let mut b = a.clone();
-        draw_text(&mut a, 5, 5, "loss", [0, 0, 0], 2);
-        draw_text_up(&mut b, 5, 90, "loss", [0, 0, 0], 2);
-        let n = |i: &RgbImage| i.pixels().filter(|p| p.0 == [0, 0, 0]).count();
-        assert_eq!(n(&a), n(&b));
-        assert!(n(&a) > 0);
-    }
-
-    fn close(a: &[f64], b: &[f64]) -> bool {
-        a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-9)
-    }
-
-    #[test]
-    fn plot_nice_ticks() {
-        let t = nice_ticks(0.27, 0.83, 6);
-        assert!(close(&t, &[0.3, 0.4, 0.5, 0.6, 0.7, 0.8]), "{t:?}");
-        let t = nice_ticks(0.0, 600.0, 6);
-        assert!(close(&t, &[0.0, 200.0, 400.0, 600.0]), "{t:?}");
-        let t = nice_ticks(0.0, 600.0, 7);
-        assert!(close(&t, &[0.0, 100.0, 200.0, 300.0, 400.0, 500.0, 600.0]), "{t:?}");
-        let t = nice_ticks(12.3, 74.1, 6);
-        assert!(close(&t, &[20.0, 30.0, 40.0, 50.0, 60.0, 70.0]), "{t:?}");
-        let t = nice_ticks(-0.013, 0.021, 6);
-        assert!(close(&t, &[-0.01, 0.0, 0.01, 0.02]), "{t:?}");
-        // axes: 4-6 ticks, labels with the decimals of the step
-        for (lo, hi) in [(0.27, 0.83), (0.0, 179.0), (1.0, 179.0), (0.0, 600.0), (13.7, 75.2), (0.31, 0.33), (5.0, 5.0), (0.0, 12345.0), (-3.0, 2.5)] {
-            let a = Axis::new(lo, hi);
-            assert!((4..=8).contains(&a.ticks.len()), "{lo}..{hi}: {:?}", a.ticks);
-            assert!(a.lo <= lo.min(hi) && a.hi >= hi.max(lo), "{lo}..{hi}: {}..{}", a.lo, a.hi);
-            assert!(a.ticks.iter().all(|t| *t >= a.lo - 1e-9 && *t <= a.hi + 1e-9));
-        }
-        assert_eq!(Axis::new(0.27, 0.83).labels, ["0.3", "0.4", "0.5", "0.6", "0.7", "0.8"]);
-        assert_eq!(Axis::new(0.0, 179.0).labels, ["0", "50", "100", "150"]);
-        assert_eq!(Axis::new(-0.013, 0.021).labels, ["-0.01", "0.00", "0.01", "0.02"]);
-    }
-
-    #[test]
-    fn plots_and_smooths() {
-        let dir = tempfile::tempdir().unwrap();
-        let p = dir.path().join("c.png");
-        let mut pts: Vec<(f64, f64)> = (0..50).map(|i| (i as f64, 1.0 / (1.0 + i as f64))).collect();
-        pts[10].1 = f64::NAN;
-        let s = Series::line(pts, [255, 0, 0]).label("1/(1+x)");
-        let e = plot_png(&p, &[s], 200, 100).unwrap();
-        assert_eq!(e, (0.0, 49.0, 1.0 / 50.0, 1.0));
-        let img = image::open(&p).unwrap().to_rgb8();
-        assert_eq!(img.dimensions(), (200, 100));
-        assert!(img.pixels().any(|px| px.0 == [255, 0, 0]));
+    fn plot_smooths() {
         let sm = smooth(&[(0.0, 0.0), (1.0, 2.0), (2.0, 4.0)], 2);
         assert_eq!(sm, vec![(0.0, 0.0), (1.0, 1.0), (2.0, 3.0)]);
+        assert_eq!(
+            smooth(&[(5.0, 1.0), (6.0, 3.0)], 0),
+            vec![(5.0, 1.0), (6.0, 3.0)]
+        );
+        assert!(smooth(&[], 25).is_empty());
     }
 
     fn metrics_text(with_val: bool) -> String {
         let mut s = String::new();
         for step in 1..=240 {
-            let loss = if step == 17 { "null".to_string() } else { format!("{}", 0.3 + 0.6 / (1.0 + step as f64 / 30.0) + 0.05 * ((step * 7) % 5) as f64 / 5.0) };
+            let loss = if step == 17 {
+                "null".to_string()
+            } else {
+                format!(
+                    "{}",
+                    0.3 + 0.6 / (1.0 + step as f64 / 30.0) + 0.05 * ((step * 7) % 5) as f64 / 5.0
+                )
+            };
             s += &format!("{{\"step\":{step},\"kind\":\"train\",\"loss\":{loss},\"lr\":0.001}}\n");
             if with_val && step % 50 == 0 {
                 let r = 20.0 + step as f64 / 6.0;
-                let r10 = if step == 100 { "null".to_string() } else { format!("{}", r + 20.0) };
+                let r10 = if step == 100 {
+                    "null".to_string()
+                } else {
+                    format!("{}", r + 20.0)
+                };
                 s += &format!(
                     "{{\"step\":{step},\"kind\":\"val\",\"loss\":0.4,\"val\":{{\"chunks\":48,\"loss\":0.4,\"input_auc5\":33.0,\"input_auc10\":59.9,\"refined_auc5\":{r},\"refined_auc10\":{r10}}}}}\n"
                 );
@@ -1010,27 +760,83 @@ mod tests {
         assert_eq!(m.val.len(), 4);
         assert!(m.val[1].refined_auc10.is_nan());
         let out = dir.path().join("curve.png");
-        let o = FigureOptions { run_label: Some("test".into()), ..FigureOptions::default() };
+        let o = FigureOptions {
+            run_label: Some("test".into()),
+            ..FigureOptions::default()
+        };
         let s = write_figure(&out, &m, &o).unwrap();
         let img = image::open(&out).unwrap().to_rgb8();
         assert_eq!(img.dimensions(), (o.width, 2 * o.panel_height));
         assert_eq!((s.width, s.height), img.dimensions());
+        // summary values
         assert_eq!(s.steps, (1.0, 240.0));
+        let (lo, hi) = m
+            .train
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.1), b.max(p.1)));
+        assert_eq!(s.loss, (lo, hi));
+        let avg = smooth(&m.train, o.smooth);
+        assert_eq!(s.last_loss_avg, avg[avg.len() - 1]);
+        assert_eq!(s.last_loss_avg.0, 240.0);
+        assert_eq!(s.auc, Some((20.0 + 50.0 / 6.0, 20.0 + 200.0 / 6.0 + 20.0)));
+        assert_eq!(s.last_val, Some(m.val[3]));
+        // the plot areas: one per panel, lined up on the step axis
         let vp = s.val_plot.expect("val panel");
-        assert!(s.loss_plot.y1 < o.panel_height as i64 && vp.y0 > o.panel_height as i64);
+        let ph = i64::from(o.panel_height);
+        assert!(
+            s.loss_plot.y0 > 0 && s.loss_plot.y1 < ph,
+            "{:?}",
+            s.loss_plot
+        );
+        assert!(vp.y0 > ph && vp.y1 < 2 * ph, "{vp:?}");
+        assert_eq!((s.loss_plot.x0, s.loss_plot.x1), (vp.x0, vp.x1));
+        assert!(s.loss_plot.x1 - s.loss_plot.x0 > i64::from(o.width) * 3 / 4);
+        assert!(s.loss_plot.y1 - s.loss_plot.y0 > ph / 2);
+        // each series in its own panel
         for c in [RAW_LOSS_RGB, AVG_LOSS_RGB] {
             assert!(count(&img, &s.loss_plot, c) > 100, "loss colour {c:?}");
             assert_eq!(count(&img, &vp, c), 0);
         }
-        for c in [INPUT_AUC5_RGB, REFINED_AUC5_RGB, INPUT_AUC10_RGB, REFINED_AUC10_RGB] {
+        for c in [
+            INPUT_AUC5_RGB,
+            REFINED_AUC5_RGB,
+            INPUT_AUC10_RGB,
+            REFINED_AUC10_RGB,
+        ] {
             assert!(count(&img, &vp, c) > 50, "val colour {c:?}");
             assert_eq!(count(&img, &s.loss_plot, c), 0);
         }
-        // text (ink) outside the plot areas: titles, tick labels, axis titles, legends
-        let top_band = Rect { x0: 0, y0: 0, x1: o.width as i64 - 1, y1: s.loss_plot.y0 - 1 };
-        assert!(count(&img, &top_band, INK) > 200);
-        let left_band = Rect { x0: 0, y0: 0, x1: s.loss_plot.x0 - 1, y1: img.height() as i64 - 1 };
-        assert!(count(&img, &left_band, INK) > 200);
+        // text outside the plot areas: titles and legends above, tick labels and axis titles
+        // left and below
+        let w = i64::from(o.width);
+        let above = |p: &Rect, top: i64| Rect {
+            x0: 0,
+            y0: top,
+            x1: w - 1,
+            y1: p.y0 - 1,
+        };
+        assert!(ink(&img, &above(&s.loss_plot, 0)) > 300);
+        assert!(ink(&img, &above(&vp, ph)) > 300);
+        for p in [&s.loss_plot, &vp] {
+            let left = Rect {
+                x0: 0,
+                y0: p.y0,
+                x1: p.x0 - 2,
+                y1: p.y1,
+            };
+            assert!(ink(&img, &left) > 100, "y tick labels and title");
+            let below = Rect {
+                x0: p.x0,
+                y0: p.y1 + 2,
+                x1: w - 1,
+                y1: p.y1 + i64::from(X_LABEL_AREA),
+            };
+            assert!(ink(&img, &below) > 100, "x tick labels and title");
+        }
+
+        // in memory: the same pixels
+        let (mem, _) = render_figure(&m, &o).unwrap();
+        assert!(mem == img);
 
         // without val lines: the loss panel only
         std::fs::write(&mpath, metrics_text(false)).unwrap();
@@ -1038,16 +844,97 @@ mod tests {
         let s = write_figure(&out, &m, &o).unwrap();
         let img = image::open(&out).unwrap().to_rgb8();
         assert_eq!(img.dimensions(), (o.width, o.panel_height));
-        assert!(s.val_plot.is_none() && s.auc.is_none());
+        assert!(s.val_plot.is_none() && s.auc.is_none() && s.last_val.is_none());
         assert!(count(&img, &s.loss_plot, AVG_LOSS_RGB) > 100);
-        let full = Rect { x0: 0, y0: 0, x1: 10_000, y1: 10_000 };
-        assert_eq!(count(&img, &full, REFINED_AUC5_RGB), 0);
+        assert!(img.pixels().all(|p| p.0 != REFINED_AUC5_RGB));
+    }
 
-        // a line that is not JSON: error naming the file and the line
-        std::fs::write(&mpath, "{\"step\":1,\"kind\":\"train\",\"loss\":0.5}\n{\"step\":2,\"kind\n").unwrap();
+    #[test]
+    fn plot_figure_edge_cases() {
+        // a single point, small image: a degenerate range is widened, nothing panics
+        let m = Metrics {
+            train: vec![(3.0, 0.5)],
+            val: vec![ValPoint {
+                step: 3.0,
+                chunks: None,
+                input_auc5: f64::NAN,
+                refined_auc5: 40.0,
+                input_auc10: f64::NAN,
+                refined_auc10: f64::NAN,
+            }],
+        };
+        let o = FigureOptions {
+            width: 10,
+            panel_height: 10,
+            ..FigureOptions::default()
+        };
+        let (img, s) = render_figure(&m, &o).unwrap();
+        assert_eq!(img.dimensions(), (200, 300));
+        assert_eq!(s.steps, (3.0, 3.0));
+        assert_eq!(s.auc, Some((40.0, 40.0)));
+        assert!(img.pixels().any(|p| p.0 == AVG_LOSS_RGB));
+        assert!(img.pixels().any(|p| p.0 == REFINED_AUC5_RGB));
+        // val lines without any finite AUC: no val panel
+        let mut m2 = m.clone();
+        m2.val[0].refined_auc5 = f64::NAN;
+        let (img, s) = render_figure(&m2, &o).unwrap();
+        assert_eq!(img.dimensions(), (200, 150));
+        assert!(s.val_plot.is_none() && s.last_val.is_none());
+        // no training loss yet; absurd sizes
+        let e = render_figure(&Metrics::default(), &o).unwrap_err();
+        assert!(e.to_string().contains("no finite training loss"), "{e}");
+        let huge = FigureOptions {
+            width: MAX_SIDE + 1,
+            ..FigureOptions::default()
+        };
+        assert!(render_figure(&m, &huge).is_err());
+        // an unwritable output (a directory in the way) names the file
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("curve.png");
+        std::fs::create_dir(&out).unwrap();
+        let e = write_figure(&out, &m, &o).unwrap_err().to_string();
+        assert!(e.contains("curve.png"), "{e}");
+    }
+
+    #[test]
+    fn plot_metrics_errors_name_file_and_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let mpath = dir.path().join("metrics.jsonl");
+        // a line that is not JSON
+        std::fs::write(
+            &mpath,
+            "{\"step\":1,\"kind\":\"train\",\"loss\":0.5}\n{\"step\":2,\"kind\n",
+        )
+        .unwrap();
         let e = read_metrics(&mpath).unwrap_err().to_string();
         assert!(e.contains("metrics.jsonl") && e.contains("line 2"), "{e}");
-        // no training loss yet
-        assert!(render_figure(&Metrics::default(), &o).is_err());
+        // JSON, but not an object
+        std::fs::write(
+            &mpath,
+            "\n{\"step\":1,\"kind\":\"train\",\"loss\":0.5}\n\n[1, 2]\n",
+        )
+        .unwrap();
+        let e = read_metrics(&mpath).unwrap_err().to_string();
+        assert!(
+            e.contains("metrics.jsonl") && e.contains("line 4: not a JSON object"),
+            "{e}"
+        );
+        // a missing file
+        let e = read_metrics(&dir.path().join("nope.jsonl"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("nope.jsonl"), "{e}");
+        // other kinds, missing steps and null values are skipped
+        let m = parse_metrics(
+            "{\"step\":1,\"kind\":\"train\",\"loss\":null}\n{\"kind\":\"train\",\"loss\":1}\n\
+             {\"step\":2,\"kind\":\"eval\",\"loss\":1}\n{\"step\":3,\"kind\":\"train\",\"loss\":0.25}\n\
+             {\"step\":3,\"kind\":\"val\",\"val\":{\"refined_auc5\":12.5}}\n",
+            Path::new("m.jsonl"),
+        )
+        .unwrap();
+        assert_eq!(m.train, vec![(3.0, 0.25)]);
+        assert_eq!(m.val.len(), 1);
+        assert_eq!((m.val[0].chunks, m.val[0].refined_auc5), (None, 12.5));
+        assert!(m.val[0].input_auc5.is_nan());
     }
 }

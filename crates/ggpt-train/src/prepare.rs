@@ -22,6 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::chunkset::TrainChunk;
 use crate::error::{Result, TrainError};
+use ggpt_core::chunk_input::ChunkInput;
 
 /// Parameters of training-chunk extraction.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -64,23 +65,55 @@ pub struct PreparedScene {
 /// Extracts training chunks from a scene with feed-forward prediction, GT and SfM result.
 /// Frames: `scene.ff` in the feed-forward frame, `sfm` in the SfM frame, GT in metres; all
 /// chunk arrays are normalised SfM-frame coordinates.
-pub fn prepare_scene(scene: &Scene, sfm: &SfmResult, params: &PrepareParams) -> Result<PreparedScene> {
+pub fn prepare_scene(
+    scene: &Scene,
+    sfm: &SfmResult,
+    params: &PrepareParams,
+) -> Result<PreparedScene> {
     let name = &scene.name;
-    let ff = scene.ff.as_ref().ok_or_else(|| TrainError::Invalid(format!("scene {name}: no feed-forward prediction")))?;
-    let gt = scene.gt.as_ref().ok_or_else(|| TrainError::Invalid(format!("scene {name}: no ground truth")))?;
+    let ff = scene
+        .ff
+        .as_ref()
+        .ok_or_else(|| TrainError::Invalid(format!("scene {name}: no feed-forward prediction")))?;
+    let gt = scene
+        .gt
+        .as_ref()
+        .ok_or_else(|| TrainError::Invalid(format!("scene {name}: no ground truth")))?;
     if !sfm.mask.iter().any(|&m| m) {
-        return Err(TrainError::Invalid(format!("scene {name}: the SfM result has no DLT point")));
+        return Err(TrainError::Invalid(format!(
+            "scene {name}: the SfM result has no DLT point"
+        )));
     }
     let seed = params.seed ^ ggpt_scene::chunker::scene_seed(name);
     let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
-    let pre = prealign_ff(&ff.points, &sfm.points, &sfm.mask, params.align_max_error, &mut rng)?;
-    let gt_al = align_gt(&gt.points, &gt.mask, &sfm.points, &sfm.mask, params.align_max_error, &mut rng)?;
+    let pre = prealign_ff(
+        &ff.points,
+        &sfm.points,
+        &sfm.mask,
+        params.align_max_error,
+        &mut rng,
+    )?;
+    let gt_al = align_gt(
+        &gt.points,
+        &gt.mask,
+        &sfm.points,
+        &sfm.mask,
+        params.align_max_error,
+        &mut rng,
+    )?;
     let s = gt_al.tgt_from_src.scale;
     if !(s.is_finite() && s > 0.0) {
-        return Err(TrainError::Invalid(format!("scene {name}: GT alignment scale {s} is not positive")));
+        return Err(TrainError::Invalid(format!(
+            "scene {name}: GT alignment scale {s} is not positive"
+        )));
     }
     let radius = scene_radius(&pre.aligned, scene.dims, params.radius_rule, None)?.radius;
-    let inputs = ChunkInputs { ff_points: &pre.aligned, dlt_points: &sfm.points, dlt_mask: &sfm.mask, roi: None };
+    let inputs = ChunkInputs {
+        ff_points: &pre.aligned,
+        dlt_points: &sfm.points,
+        dlt_mask: &sfm.mask,
+        roi: None,
+    };
     let sources = RecordSources {
         ff_points: &pre.aligned,
         ff_conf: &ff.conf,
@@ -92,30 +125,47 @@ pub fn prepare_scene(scene: &Scene, sfm: &SfmResult, params: &PrepareParams) -> 
     let mut draws = PcgDraws::new(seed.wrapping_add(1));
     let mut chunks = Vec::with_capacity(params.chunks_per_scene);
     for _ in 0..params.chunks_per_scene {
-        let Some(chunk) = sample_training_chunk(inputs, radius, &params.chunking, &mut draws)? else {
-            tracing::warn!("scene {name}: no acceptable training chunk in 10 draws; skipping the rest of the scene");
+        let Some(chunk) = sample_training_chunk(inputs, radius, &params.chunking, &mut draws)?
+        else {
+            tracing::warn!(
+                "scene {name}: no acceptable training chunk in 10 draws; skipping the rest of the scene"
+            );
             break;
         };
         let rec = ChunkRecord::build(&chunk, &sources)?;
         chunks.push(from_record(rec, 0)?);
     }
-    Ok(PreparedScene { chunks, metres_per_unit: 1.0 / s, radius })
+    Ok(PreparedScene {
+        chunks,
+        metres_per_unit: 1.0 / s,
+        radius,
+    })
 }
 
 /// Converts a `ggpt-scene` record with GT into a [`TrainChunk`]; DLT-less rows of `geo_pts`
 /// are zeroed.
 pub fn from_record(rec: ChunkRecord, scene: usize) -> Result<TrainChunk> {
-    let gt = rec.gt.ok_or_else(|| TrainError::Invalid(format!("chunk {}: record without GT", rec.index)))?;
-    let geo_pts = rec.geo_pts.iter().zip(&rec.geo_msk).map(|(p, &m)| if m { *p } else { [0.0; 3] }).collect();
+    let gt = rec
+        .gt
+        .ok_or_else(|| TrainError::Invalid(format!("chunk {}: record without GT", rec.index)))?;
+    let input = rec.input;
+    let geo_pts = input
+        .geo_pts
+        .iter()
+        .zip(&input.geo_msk)
+        .map(|(p, &m)| if m { *p } else { [0.0; 3] })
+        .collect();
     Ok(TrainChunk {
         scene,
         center: rec.center,
         radius: rec.radius,
         pixels: rec.pixels,
-        ff_pts: rec.ff_pts,
-        ff_conf: rec.ff_conf,
-        geo_pts,
-        geo_msk: rec.geo_msk,
+        input: ChunkInput {
+            ff_pts: input.ff_pts,
+            ff_conf: input.ff_conf,
+            geo_pts,
+            geo_msk: input.geo_msk,
+        },
         gt_pts: gt.pts,
         gt_msk: gt.msk,
     })
@@ -149,7 +199,10 @@ pub fn synthetic_scene(spec: &SynthSpec) -> Result<(Scene, SfmResult)> {
     };
     let out = ggpt_synth::generate(&cfg)?;
     let mut scene = out.scene;
-    let ff = scene.ff.as_ref().ok_or_else(|| TrainError::Invalid("synthetic scene without feed-forward".into()))?;
+    let ff = scene
+        .ff
+        .as_ref()
+        .ok_or_else(|| TrainError::Invalid("synthetic scene without feed-forward".into()))?;
     let sfm_cfg = ggpt_sfm::pipeline::SfmConfig::preset(ggpt_sfm::masks::Preset::Benchmark);
     let sfm = ggpt_sfm::pipeline::run_sfm(ff, &scene.images, scene.dims, &scene.matches, &sfm_cfg)
         .map_err(|e| TrainError::Sfm(format!("{}: {e}", scene.name)))?
@@ -162,12 +215,21 @@ pub fn synthetic_scene(spec: &SynthSpec) -> Result<(Scene, SfmResult)> {
 /// Reads an official per-sequence directory (`gt.bin`, `ff_outputs.bin`, `sfm_dlt_outputs.bin`).
 pub fn official_scene(dir: &Path) -> Result<(Scene, SfmResult)> {
     let scene = ggpt_core::io::official::read_official_dir(dir)?;
-    let sfm = scene.sfm.clone().ok_or_else(|| TrainError::Invalid(format!("{}: no sfm_dlt_outputs.bin", dir.display())))?;
+    let sfm = scene
+        .sfm
+        .clone()
+        .ok_or_else(|| TrainError::Invalid(format!("{}: no sfm_dlt_outputs.bin", dir.display())))?;
     if scene.gt.is_none() {
-        return Err(TrainError::Invalid(format!("{}: no gt.bin (training needs ground truth)", dir.display())));
+        return Err(TrainError::Invalid(format!(
+            "{}: no gt.bin (training needs ground truth)",
+            dir.display()
+        )));
     }
     if scene.ff.is_none() {
-        return Err(TrainError::Invalid(format!("{}: no ff_outputs.bin", dir.display())));
+        return Err(TrainError::Invalid(format!(
+            "{}: no ff_outputs.bin",
+            dir.display()
+        )));
     }
     Ok((scene, sfm))
 }
@@ -178,11 +240,22 @@ mod tests {
 
     #[test]
     fn synthetic_scene_gives_normalised_chunks_with_gt() {
-        let spec = SynthSpec { kind: ggpt_synth::SceneKind::Room, views: 3, width: 84, height: 56, seed: 3 };
+        let spec = SynthSpec {
+            kind: ggpt_synth::SceneKind::Room,
+            views: 3,
+            width: 84,
+            height: 56,
+            seed: 3,
+        };
         let (scene, sfm) = synthetic_scene(&spec).unwrap();
         let params = PrepareParams {
             chunks_per_scene: 3,
-            chunking: ChunkParams { max_pixels: 3000, min_dlt: 20, min_pixels: 100, ..ChunkParams::default() },
+            chunking: ChunkParams {
+                max_pixels: 3000,
+                min_dlt: 20,
+                min_pixels: 100,
+                ..ChunkParams::default()
+            },
             ..PrepareParams::default()
         };
         let prep = prepare_scene(&scene, &sfm, &params).unwrap();
@@ -192,7 +265,12 @@ mod tests {
             c.validate().unwrap();
             assert!(c.len() <= 3000);
             // the centre pixel's DLT point is at the origin
-            assert!(c.geo_pts.iter().zip(&c.geo_msk).any(|(p, &m)| m && p.iter().all(|v| v.abs() < 1e-6)));
+            assert!(
+                c.geo_pts
+                    .iter()
+                    .zip(&c.geo_msk)
+                    .any(|(p, &m)| m && p.iter().all(|v| v.abs() < 1e-6))
+            );
             // GT and dense points live on the same scale: median |ff - gt| well below the cube size
             let mut d: Vec<f32> = c
                 .ff_pts
@@ -200,10 +278,16 @@ mod tests {
                 .zip(&c.gt_pts)
                 .zip(&c.gt_msk)
                 .filter(|(_, m)| **m)
-                .map(|((a, b), _)| ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt())
+                .map(|((a, b), _)| {
+                    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+                })
                 .collect();
             d.sort_by(f32::total_cmp);
-            assert!(d[d.len() / 2] < 0.5, "median |ff - gt| = {}", d[d.len() / 2]);
+            assert!(
+                d[d.len() / 2] < 0.5,
+                "median |ff - gt| = {}",
+                d[d.len() / 2]
+            );
         }
     }
 }

@@ -19,7 +19,6 @@ use std::time::Instant;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Tensor};
-use ggpt_model::plan::ChunkInput;
 use ggpt_model::{Ggpt, GgptConfig};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
@@ -31,7 +30,7 @@ use crate::evaluate::{ChunkValidation, validate_chunks};
 use crate::loss::{HostTargets, loss};
 
 /// Learning-rate schedule.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum LrSchedule {
     /// Constant learning rate (paper default).
@@ -41,7 +40,7 @@ pub enum LrSchedule {
 }
 
 /// How a training step obtains its gradients (`docs/training.md`, memory-efficient training).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Recompute {
     /// Segment recomputation ([`ggpt_model::recompute`]): one forward without a graph that
@@ -51,6 +50,21 @@ pub enum Recompute {
     Segments,
     /// Plain autodiff over the whole forward: every intermediate kept until the backward.
     Off,
+}
+
+impl std::str::FromStr for Recompute {
+    type Err = TrainError;
+
+    /// Parses `segments` or `off` (the serialised names).
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "segments" => Ok(Recompute::Segments),
+            "off" => Ok(Recompute::Off),
+            other => Err(TrainError::Invalid(format!(
+                "unknown recompute mode {other:?} (segments, off)"
+            ))),
+        }
+    }
 }
 
 /// Options of a training run (everything recorded in checkpoints and `config.json`).
@@ -150,7 +164,8 @@ pub struct MetricsLine {
 
 /// Mixes the run seed and a step into a 64-bit seed (SplitMix64 finaliser).
 pub fn step_seed(seed: u64, step: u64, salt: u64) -> u64 {
-    let mut z = seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ salt.wrapping_mul(0xD1B5_4A32_D192_ED03);
+    let mut z =
+        seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ salt.wrapping_mul(0xD1B5_4A32_D192_ED03);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^ (z >> 31)
@@ -158,9 +173,16 @@ pub fn step_seed(seed: u64, step: u64, salt: u64) -> u64 {
 
 /// Indices of the chunks of step `step`: `batch_size` distinct scenes (random order), one random
 /// chunk of each; scenes repeat only when there are fewer scenes than `batch_size`.
-pub fn batch_indices(by_scene: &[Vec<usize>], batch_size: usize, seed: u64, step: u64) -> Vec<usize> {
+pub fn batch_indices(
+    by_scene: &[Vec<usize>],
+    batch_size: usize,
+    seed: u64,
+    step: u64,
+) -> Vec<usize> {
     let mut rng = rand_pcg::Pcg64::seed_from_u64(step_seed(seed, step, 1));
-    let scenes: Vec<usize> = (0..by_scene.len()).filter(|&s| !by_scene[s].is_empty()).collect();
+    let scenes: Vec<usize> = (0..by_scene.len())
+        .filter(|&s| !by_scene[s].is_empty())
+        .collect();
     let mut out = Vec::with_capacity(batch_size);
     while out.len() < batch_size && !scenes.is_empty() {
         let mut order = scenes.clone();
@@ -191,7 +213,11 @@ pub fn learning_rate(o: &TrainOptions, step: u64) -> f64 {
 
 /// Global L2 norm of the gradients of `model`'s parameters, and optional rescaling so that it
 /// is at most `max_norm` (PyTorch `clip_grad_norm_` semantics: factor `max / (norm + 1e-6)`).
-pub fn clip_global_norm(model: &Ggpt, grads: &mut GradientsParams, max_norm: Option<f64>) -> Result<f64> {
+pub fn clip_global_norm(
+    model: &Ggpt,
+    grads: &mut GradientsParams,
+    max_norm: Option<f64>,
+) -> Result<f64> {
     struct Sq<'a> {
         grads: &'a GradientsParams,
         parts: Vec<Tensor<1>>,
@@ -210,21 +236,32 @@ pub fn clip_global_norm(model: &Ggpt, grads: &mut GradientsParams, max_norm: Opt
     impl ModuleVisitor for Scale<'_> {
         fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
             if let Some(g) = self.grads.remove::<D>(param.id) {
-                self.grads.register::<D>(param.id, g.mul_scalar(self.factor));
+                self.grads
+                    .register::<D>(param.id, g.mul_scalar(self.factor));
             }
         }
     }
-    let mut sq = Sq { grads, parts: Vec::new() };
+    let mut sq = Sq {
+        grads,
+        parts: Vec::new(),
+    };
     model.visit(&mut sq);
     if sq.parts.is_empty() {
         return Ok(0.0);
     }
     let total = Tensor::cat(sq.parts, 0).sum();
-    let norm = (ggpt_model::model::read_tensor_f32(&total, "grad norm")?.first().copied().unwrap_or(0.0) as f64).sqrt();
+    let norm = (ggpt_model::model::read_tensor_f32(&total, "grad norm")?
+        .first()
+        .copied()
+        .unwrap_or(0.0) as f64)
+        .sqrt();
     if let Some(max) = max_norm
         && norm > max
     {
-        let mut s = Scale { grads, factor: max / (norm + 1e-6) };
+        let mut s = Scale {
+            grads,
+            factor: max / (norm + 1e-6),
+        };
         model.visit(&mut s);
     }
     Ok(norm)
@@ -232,7 +269,11 @@ pub fn clip_global_norm(model: &Ggpt, grads: &mut GradientsParams, max_norm: Opt
 
 /// The Adam optimiser of `pipeline.md` §11.4 (PyTorch defaults, no weight decay).
 pub fn adam() -> ModuleOptimizer {
-    AdamConfig::new().with_beta_1(0.9).with_beta_2(0.999).with_epsilon(1e-8).init()
+    AdamConfig::new()
+        .with_beta_1(0.9)
+        .with_beta_2(0.999)
+        .with_epsilon(1e-8)
+        .init()
 }
 
 /// Scalar values of the loss parts of one step.
@@ -253,8 +294,21 @@ pub struct StepLoss {
 /// One optimisation step on `chunks` (one forward, one replica). `device` must be an
 /// autodiff device. Drop-path masks come from the device RNG unless the calling thread seeded
 /// its own ([`ggpt_model::drop_path::seed_drop_path`]).
-pub fn train_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig, chunks: &[&TrainChunk], lr: f64, clip: Option<f64>, device: &Device) -> Result<(Ggpt, StepLoss)> {
-    let plan = StepPlan { devices: std::slice::from_ref(device), grad_accum: 1, drop_path_seed: None, recompute: Recompute::default() };
+pub fn train_step(
+    model: Ggpt,
+    optim: &mut ModuleOptimizer,
+    cfg: &GgptConfig,
+    chunks: &[&TrainChunk],
+    lr: f64,
+    clip: Option<f64>,
+    device: &Device,
+) -> Result<(Ggpt, StepLoss)> {
+    let plan = StepPlan {
+        devices: std::slice::from_ref(device),
+        grad_accum: 1,
+        drop_path_seed: None,
+        recompute: Recompute::default(),
+    };
     parallel_step(model, optim, cfg, chunks, lr, clip, &plan)
 }
 
@@ -275,7 +329,10 @@ pub struct StepPlan<'a> {
 }
 
 /// The batch cut into `parts` contiguous parts of near-equal size (earlier parts one larger).
-pub fn split_batch<'c, 'a>(chunks: &'a [&'c TrainChunk], parts: usize) -> Vec<&'a [&'c TrainChunk]> {
+pub fn split_batch<'c, 'a>(
+    chunks: &'a [&'c TrainChunk],
+    parts: usize,
+) -> Vec<&'a [&'c TrainChunk]> {
     let (q, r) = (chunks.len() / parts, chunks.len() % parts);
     let mut out = Vec::with_capacity(parts);
     let mut start = 0;
@@ -297,32 +354,64 @@ struct ReplicaResult {
 }
 
 /// Runs the micro-batches `parts` (indices `first..`) on `replica`, sequentially.
-fn run_replica(replica: Ggpt, cfg: &GgptConfig, parts: &[&[&TrainChunk]], first: usize, total_chunks: usize, plan: &StepPlan<'_>, main: &Device) -> Result<ReplicaResult> {
-    let device = replica.devices().first().cloned().ok_or_else(|| TrainError::Invalid("replica without a device".into()))?;
+fn run_replica(
+    replica: Ggpt,
+    cfg: &GgptConfig,
+    parts: &[&[&TrainChunk]],
+    first: usize,
+    total_chunks: usize,
+    plan: &StepPlan<'_>,
+    main: &Device,
+) -> Result<ReplicaResult> {
+    let device = replica
+        .devices()
+        .first()
+        .cloned()
+        .ok_or_else(|| TrainError::Invalid("replica without a device".into()))?;
     let mut acc: Option<GradientsParams> = None;
     let (mut loss_sum, mut tokens) = ([0.0f64; 3], 0usize);
     for (j, part) in parts.iter().enumerate() {
-        ggpt_model::drop_path::seed_drop_path(plan.drop_path_seed.map(|s| step_seed(s, (first + j) as u64, 3)));
-        let inputs: Vec<ChunkInput> = part.iter().map(|c| c.to_input()).collect();
-        let batch = ggpt_model::profile::scope(|| "step.prepare".to_string(), || ggpt_model::infer::prepare_chunks(cfg, &inputs, &device))?;
+        ggpt_model::drop_path::seed_drop_path(
+            plan.drop_path_seed
+                .map(|s| step_seed(s, (first + j) as u64, 3)),
+        );
+        // the chunks lend their arrays to the planner: nothing is copied per forward
+        let batch = ggpt_model::profile::scope(
+            || "step.prepare".to_string(),
+            || ggpt_model::infer::prepare_chunks(cfg, part, &device),
+        )?;
         // the part's mean loss weighted by its share of the batch: the sum over parts is the
         // batch's mean loss, whatever the split
         let w = part.len() as f64 / total_chunks as f64;
         let targets = HostTargets::new(part).upload(&device);
         let objective = |out: ggpt_model::GgptOutput| -> Result<(Tensor<1>, [f32; 3])> {
             let parts = loss(out.tokens_xyz, out.tokens_conf, &targets);
-            let vals = ggpt_model::model::read_tensor_f32(&Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0), "loss")?;
+            let vals = ggpt_model::model::read_tensor_f32(
+                &Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0),
+                "loss",
+            )?;
             let v = |i: usize| vals.get(i).copied().unwrap_or(f32::NAN);
             if !v(0).is_finite() {
-                return Err(TrainError::Invalid(format!("non-finite loss {} (L_conf {}, L_id {})", v(0), v(1), v(2))));
+                return Err(TrainError::Invalid(format!(
+                    "non-finite loss {} (L_conf {}, L_id {})",
+                    v(0),
+                    v(1),
+                    v(2)
+                )));
             }
             Ok((parts.total.mul_scalar(w), [v(0), v(1), v(2)]))
         };
         let (g, vals) = match plan.recompute {
-            Recompute::Segments => ggpt_model::recompute::recomputed_gradients(&replica, &batch, objective)?,
+            Recompute::Segments => {
+                ggpt_model::recompute::recomputed_gradients(&replica, &batch, objective)?
+            }
             Recompute::Off => {
-                let (total, vals) = ggpt_model::profile::scope(|| "step.forward".to_string(), || objective(replica.forward(&batch)))?;
-                let grads = ggpt_model::profile::scope(|| "step.backward".to_string(), || total.backward());
+                let (total, vals) = ggpt_model::profile::scope(
+                    || "step.forward".to_string(),
+                    || objective(replica.forward(&batch)),
+                )?;
+                let grads =
+                    ggpt_model::profile::scope(|| "step.backward".to_string(), || total.backward());
                 (GradientsParams::from_grads(grads, &replica), vals)
             }
         };
@@ -336,10 +425,26 @@ fn run_replica(replica: Ggpt, cfg: &GgptConfig, parts: &[&[&TrainChunk]], first:
         });
     }
     ggpt_model::drop_path::seed_drop_path(None);
-    let grads = acc.ok_or_else(|| TrainError::Invalid("replica without a micro-batch".into()))?.to_device(main, &replica);
+    let grads = acc
+        .ok_or_else(|| TrainError::Invalid("replica without a micro-batch".into()))?
+        .to_device(main, &replica);
     let synced = replica.valid();
-    let running = synced.named_batch_norms().into_iter().map(|(_, bn)| (bn.running_mean.value().to_device(main), bn.running_var.value().to_device(main))).collect();
-    Ok(ReplicaResult { grads, loss: loss_sum, tokens, running })
+    let running = synced
+        .named_batch_norms()
+        .into_iter()
+        .map(|(_, bn)| {
+            (
+                bn.running_mean.value().to_device(main),
+                bn.running_var.value().to_device(main),
+            )
+        })
+        .collect();
+    Ok(ReplicaResult {
+        grads,
+        loss: loss_sum,
+        tokens,
+        running,
+    })
 }
 
 /// `a + b` for every parameter of `model` (a missing side counts as 0). Summation order is
@@ -376,7 +481,15 @@ fn add_gradients(model: &Ggpt, a: GradientsParams, b: GradientsParams) -> Gradie
 /// gradients are those of the batch's mean loss. The gradients are moved to the main device and
 /// added in replica order; one optimiser step follows (after optional clipping), and the
 /// running statistics become the mean of the replicas' (Burn's `RunningState` rule).
-pub fn parallel_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig, chunks: &[&TrainChunk], lr: f64, clip: Option<f64>, plan: &StepPlan<'_>) -> Result<(Ggpt, StepLoss)> {
+pub fn parallel_step(
+    model: Ggpt,
+    optim: &mut ModuleOptimizer,
+    cfg: &GgptConfig,
+    chunks: &[&TrainChunk],
+    lr: f64,
+    clip: Option<f64>,
+    plan: &StepPlan<'_>,
+) -> Result<(Ggpt, StepLoss)> {
     let replicas = plan.devices.len();
     let k = plan.grad_accum.max(1);
     if replicas == 0 {
@@ -390,14 +503,28 @@ pub fn parallel_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig,
         )));
     }
     if replicas > 1 && plan.drop_path_seed.is_none() {
-        return Err(TrainError::Invalid("several replicas need a drop-path seed (reproducible masks per thread)".into()));
+        return Err(TrainError::Invalid(
+            "several replicas need a drop-path seed (reproducible masks per thread)".into(),
+        ));
     }
     let main = plan.devices[0].clone();
     let parts = split_batch(chunks, replicas * k);
     // Replicas are independent copies (`valid` gives fresh running-statistics cells) with the
     // main model's training flags (a test may switch BatchNorm to eval mode).
-    let mut copies: Vec<Ggpt> = ggpt_model::profile::scope(|| "step.replica_copies".to_string(), || plan.devices.iter().map(|d| model.valid().fork(d).train()).collect());
-    let flags: Vec<Param<burn::module::Flag>> = model.named_batch_norms().into_iter().map(|(_, bn)| bn.training.clone()).collect();
+    let mut copies: Vec<Ggpt> = ggpt_model::profile::scope(
+        || "step.replica_copies".to_string(),
+        || {
+            plan.devices
+                .iter()
+                .map(|d| model.valid().fork(d).train())
+                .collect()
+        },
+    );
+    let flags: Vec<Param<burn::module::Flag>> = model
+        .named_batch_norms()
+        .into_iter()
+        .map(|(_, bn)| bn.training.clone())
+        .collect();
     for copy in &mut copies {
         for (bn, flag) in copy.batch_norms_mut().into_iter().zip(&flags) {
             bn.training = flag.clone();
@@ -405,7 +532,9 @@ pub fn parallel_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig,
     }
     let total = chunks.len();
     let results: Vec<Result<ReplicaResult>> = if replicas == 1 {
-        let copy = copies.pop().ok_or_else(|| TrainError::Invalid("no replica".into()))?;
+        let copy = copies
+            .pop()
+            .ok_or_else(|| TrainError::Invalid("no replica".into()))?;
         vec![run_replica(copy, cfg, &parts, 0, total, plan, &main)]
     } else {
         std::thread::scope(|scope| {
@@ -418,7 +547,14 @@ pub fn parallel_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig,
                     scope.spawn(move || run_replica(copy, cfg, my_parts, r * k, total, plan, &main))
                 })
                 .collect();
-            handles.into_iter().map(|h| h.join().unwrap_or_else(|_| Err(TrainError::Invalid("a replica thread panicked".into())))).collect()
+            handles
+                .into_iter()
+                .map(|h| {
+                    h.join().unwrap_or_else(|_| {
+                        Err(TrainError::Invalid("a replica thread panicked".into()))
+                    })
+                })
+                .collect()
         })
     };
     let mut grads: Option<GradientsParams> = None;
@@ -437,16 +573,26 @@ pub fn parallel_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig,
         });
     }
     let mut grads = grads.ok_or_else(|| TrainError::Invalid("no gradients".into()))?;
-    let grad_norm = ggpt_model::profile::scope(|| "step.clip".to_string(), || clip_global_norm(&model, &mut grads, clip))?;
-    let mut model = ggpt_model::profile::scope(|| "step.adam".to_string(), || optim.step(lr, model, grads));
+    let grad_norm = ggpt_model::profile::scope(
+        || "step.clip".to_string(),
+        || clip_global_norm(&model, &mut grads, clip),
+    )?;
+    let mut model =
+        ggpt_model::profile::scope(|| "step.adam".to_string(), || optim.step(lr, model, grads));
     // running statistics: the mean over replicas, in replica order
     let n = running.len() as f64;
     for (i, bn) in model.batch_norms_mut().into_iter().enumerate() {
         let (mut mean, mut var) = (None::<Tensor<1>>, None::<Tensor<1>>);
         for rep in &running {
             let (m, v) = rep[i].clone();
-            mean = Some(match mean { None => m, Some(a) => a + m });
-            var = Some(match var { None => v, Some(a) => a + v });
+            mean = Some(match mean {
+                None => m,
+                Some(a) => a + m,
+            });
+            var = Some(match var {
+                None => v,
+                Some(a) => a + v,
+            });
         }
         if let (Some(m), Some(v)) = (mean, var) {
             let dev = bn.running_mean.value().device();
@@ -454,7 +600,16 @@ pub fn parallel_step(model: Ggpt, optim: &mut ModuleOptimizer, cfg: &GgptConfig,
             bn.running_var = burn::module::RunningState::new(v.div_scalar(n).to_device(&dev));
         }
     }
-    Ok((model, StepLoss { total: loss_sum[0], conf: loss_sum[1], id: loss_sum[2], grad_norm, tokens }))
+    Ok((
+        model,
+        StepLoss {
+            total: loss_sum[0],
+            conf: loss_sum[1],
+            id: loss_sum[2],
+            grad_norm,
+            tokens,
+        },
+    ))
 }
 
 /// Chunk indices grouped by `TrainChunk::scene` (index = scene).
@@ -474,7 +629,15 @@ pub fn by_scene_of(chunks: &[TrainChunk]) -> Vec<Vec<usize>> {
 /// statistics instead of an exponential average of the last ~1/momentum steps. The momentum is
 /// reset to `cfg.bn_momentum` afterwards. `device` must be an autodiff device. The returned
 /// model is meant for evaluation and export (its drop path is off).
-pub fn recalibrate_batch_norm(model: Ggpt, cfg: &GgptConfig, chunks: &[TrainChunk], batch_size: usize, batches: usize, seed: u64, device: &Device) -> Result<Ggpt> {
+pub fn recalibrate_batch_norm(
+    model: Ggpt,
+    cfg: &GgptConfig,
+    chunks: &[TrainChunk],
+    batch_size: usize,
+    batches: usize,
+    seed: u64,
+    device: &Device,
+) -> Result<Ggpt> {
     if chunks.is_empty() || batches == 0 {
         return Ok(model);
     }
@@ -487,9 +650,14 @@ pub fn recalibrate_batch_norm(model: Ggpt, cfg: &GgptConfig, chunks: &[TrainChun
         for bn in model.batch_norms_mut() {
             bn.momentum = 1.0 / (k as f64 + 1.0);
         }
-        let idx = batch_indices(&by_scene, batch_size.max(1), step_seed(seed, k as u64, 3), k as u64);
-        let inputs: Vec<ChunkInput> = idx.iter().filter_map(|&i| chunks.get(i)).map(|c| c.to_input()).collect();
-        let batch = ggpt_model::infer::prepare_chunks(cfg, &inputs, device)?;
+        let idx = batch_indices(
+            &by_scene,
+            batch_size.max(1),
+            step_seed(seed, k as u64, 3),
+            k as u64,
+        );
+        let group: Vec<&TrainChunk> = idx.iter().filter_map(|&i| chunks.get(i)).collect();
+        let batch = ggpt_model::infer::prepare_chunks(cfg, &group, device)?;
         // the forward updates the running statistics; its outputs are not needed
         let out = model.forward(&batch);
         drop(out);
@@ -506,18 +674,32 @@ pub fn checkpoint_dir(out: &Path, step: u64) -> PathBuf {
 }
 
 /// Writes a checkpoint atomically (temporary directory + rename) and prunes old ones.
-pub fn save_checkpoint(out: &Path, model: &Ggpt, optim: &ModuleOptimizer, state: &TrainState) -> Result<PathBuf> {
+pub fn save_checkpoint(
+    out: &Path,
+    model: &Ggpt,
+    optim: &ModuleOptimizer,
+    state: &TrainState,
+) -> Result<PathBuf> {
     let root = out.join("checkpoints");
     std::fs::create_dir_all(&root).map_err(io_err(&root))?;
     let final_dir = checkpoint_dir(out, state.step);
-    let tmp = root.join(format!("{CHECKPOINT_TMP_PREFIX}{:08}-{}", state.step, std::process::id()));
+    let tmp = root.join(format!(
+        "{CHECKPOINT_TMP_PREFIX}{:08}-{}",
+        state.step,
+        std::process::id()
+    ));
     if tmp.exists() {
         std::fs::remove_dir_all(&tmp).map_err(io_err(&tmp))?;
     }
     std::fs::create_dir_all(&tmp).map_err(io_err(&tmp))?;
-    let ck = |message: String| TrainError::Checkpoint { path: tmp.clone(), message };
+    let ck = |message: String| TrainError::Checkpoint {
+        path: tmp.clone(),
+        message,
+    };
     ggpt_model::weights::save_burnpack(&model.valid(), &tmp.join("model.bpk"))?;
-    optim.save(tmp.join("optim.bpk")).map_err(|e| ck(format!("optimizer: {e:?}")))?;
+    optim
+        .save(tmp.join("optim.bpk"))
+        .map_err(|e| ck(format!("optimizer: {e:?}")))?;
     let text = serde_json::to_string_pretty(state).map_err(|e| ck(e.to_string()))?;
     std::fs::write(tmp.join("state.json"), text).map_err(io_err(tmp.join("state.json")))?;
     if final_dir.exists() {
@@ -544,7 +726,9 @@ pub fn list_checkpoints(out: &Path) -> Result<Vec<(u64, PathBuf)>> {
     for e in std::fs::read_dir(&root).map_err(io_err(&root))? {
         let e = e.map_err(io_err(&root))?;
         let name = e.file_name().to_string_lossy().into_owned();
-        if let Some(n) = name.strip_prefix("step-").and_then(|s| s.parse::<u64>().ok())
+        if let Some(n) = name
+            .strip_prefix("step-")
+            .and_then(|s| s.parse::<u64>().ok())
             && e.path().join("state.json").is_file()
         {
             v.push((n, e.path()));
@@ -558,19 +742,30 @@ pub fn list_checkpoints(out: &Path) -> Result<Vec<(u64, PathBuf)>> {
 pub fn load_checkpoint(dir: &Path, device: &Device) -> Result<(Ggpt, ModuleOptimizer, TrainState)> {
     let state_path = dir.join("state.json");
     let text = std::fs::read_to_string(&state_path).map_err(io_err(&state_path))?;
-    let state: TrainState = serde_json::from_str(&text).map_err(|e| TrainError::Format { path: state_path.clone(), message: e.to_string() })?;
+    let state: TrainState = serde_json::from_str(&text).map_err(|e| TrainError::Format {
+        path: state_path.clone(),
+        message: e.to_string(),
+    })?;
     state
         .options
         .model
         .validate()
-        .map_err(|m| TrainError::Format { path: state_path.clone(), message: format!("options.model: {m}") })?;
+        .map_err(|m| TrainError::Format {
+            path: state_path.clone(),
+            message: format!("options.model: {m}"),
+        })?;
     let plain = device.clone().without_autodiff();
     let model = Ggpt::new(&state.options.model, &plain);
     let weights = dir.join("model.bpk");
     // The architecture comes from state.json: a mismatch is in either file, so both are named.
-    let model = ggpt_model::weights::load_burnpack(model, &weights).map_err(|e| TrainError::Checkpoint {
-        path: weights.clone(),
-        message: format!("{e} (the network architecture is the one recorded in {})", state_path.display()),
+    let model = ggpt_model::weights::load_burnpack(model, &weights).map_err(|e| {
+        TrainError::Checkpoint {
+            path: weights.clone(),
+            message: format!(
+                "{e} (the network architecture is the one recorded in {})",
+                state_path.display()
+            ),
+        }
     })?;
     let optim = load_optimizer(&dir.join("optim.bpk"), &model, &weights, state.step)?;
     Ok((model.fork(device).train(), optim, state))
@@ -587,16 +782,36 @@ const OPTIM_RANK_SUFFIX: &str = ".__rank";
 /// every state tensor must carry the id its name starts with, every recorded parameter must be
 /// one of the model's (some, after the first step), and every tensor must survive the load.
 /// `model_origin` is the file `model` was loaded from (named in a mismatch).
-pub fn load_optimizer(path: &Path, model: &Ggpt, model_origin: &Path, step: u64) -> Result<ModuleOptimizer> {
-    let err = |message: String| TrainError::Checkpoint { path: path.to_path_buf(), message };
+pub fn load_optimizer(
+    path: &Path,
+    model: &Ggpt,
+    model_origin: &Path,
+    step: u64,
+) -> Result<ModuleOptimizer> {
+    let err = |message: String| TrainError::Checkpoint {
+        path: path.to_path_buf(),
+        message,
+    };
     let bytes = std::fs::read(path).map_err(io_err(path))?;
-    let reader = burn_pack::Reader::from_bytes(burn_pack::Bytes::from_bytes_vec(bytes.clone())).map_err(|e| err(format!("not an optimizer record: {e}")))?;
-    let ranked: BTreeSet<u64> = reader.scalars().keys().filter_map(|k| k.strip_suffix(OPTIM_RANK_SUFFIX)?.parse().ok()).collect();
-    let tensors = reader.into_tensors().map_err(|e| err(format!("corrupt optimizer record: {e}")))?;
+    let reader = burn_pack::Reader::from_bytes(burn_pack::Bytes::from_bytes_vec(bytes.clone()))
+        .map_err(|e| err(format!("not an optimizer record: {e}")))?;
+    let ranked: BTreeSet<u64> = reader
+        .scalars()
+        .keys()
+        .filter_map(|k| k.strip_suffix(OPTIM_RANK_SUFFIX)?.parse().ok())
+        .collect();
+    let tensors = reader
+        .into_tensors()
+        .map_err(|e| err(format!("corrupt optimizer record: {e}")))?;
     for t in &tensors {
-        let id = t.param_id.ok_or_else(|| err(format!("state tensor {} carries no parameter id", t.name)))?;
+        let id = t
+            .param_id
+            .ok_or_else(|| err(format!("state tensor {} carries no parameter id", t.name)))?;
         if !t.name.starts_with(&format!("{id}.")) || !ranked.contains(&id) {
-            return Err(err(format!("state tensor {} does not belong to a recorded parameter (id {id})", t.name)));
+            return Err(err(format!(
+                "state tensor {} does not belong to a recorded parameter (id {id})",
+                t.name
+            )));
         }
     }
     struct Ids(BTreeSet<u64>);
@@ -617,10 +832,16 @@ pub fn load_optimizer(path: &Path, model: &Ggpt, model_origin: &Path, step: u64)
             model_origin.display()
         )));
     }
-    let optim = adam().from_bytes(burn_pack::Bytes::from_bytes_vec(bytes)).map_err(|e| err(format!("{e:?}")))?;
+    let optim = adam()
+        .from_bytes(burn_pack::Bytes::from_bytes_vec(bytes))
+        .map_err(|e| err(format!("{e:?}")))?;
     let kept = optim.to_record().len();
     if kept != tensors.len() {
-        return Err(err(format!("{} of {} state tensors could not be restored (wrong shape or dtype)", tensors.len() - kept, tensors.len())));
+        return Err(err(format!(
+            "{} of {} state tensors could not be restored (wrong shape or dtype)",
+            tensors.len() - kept,
+            tensors.len()
+        )));
     }
     Ok(optim)
 }
@@ -662,7 +883,11 @@ pub struct RunResult {
 
 fn append_metrics(path: &Path, line: &MetricsLine) -> Result<()> {
     use std::io::Write;
-    let mut f = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(io_err(path))?;
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .map_err(io_err(path))?;
     let text = serde_json::to_string(line).map_err(|e| TrainError::Invalid(e.to_string()))?;
     writeln!(f, "{text}").map_err(io_err(path))
 }
@@ -673,7 +898,9 @@ const CHECKPOINT_TMP_PREFIX: &str = ".tmp-step-";
 
 /// Whether process `pid` is alive (`kill(pid, 0)` succeeds or fails for lack of permission).
 fn process_alive(pid: u32) -> bool {
-    let Ok(pid) = libc::pid_t::try_from(pid) else { return false };
+    let Ok(pid) = libc::pid_t::try_from(pid) else {
+        return false;
+    };
     if pid <= 0 {
         return false;
     }
@@ -696,14 +923,21 @@ pub fn remove_stale_checkpoint_temps(out: &Path) -> Result<Vec<PathBuf>> {
     for e in std::fs::read_dir(&root).map_err(io_err(&root))? {
         let e = e.map_err(io_err(&root))?;
         let name = e.file_name().to_string_lossy().into_owned();
-        let Some(rest) = name.strip_prefix(CHECKPOINT_TMP_PREFIX) else { continue };
-        let Some(pid) = rest.rsplit('-').next().and_then(|p| p.parse::<u32>().ok()) else { continue };
+        let Some(rest) = name.strip_prefix(CHECKPOINT_TMP_PREFIX) else {
+            continue;
+        };
+        let Some(pid) = rest.rsplit('-').next().and_then(|p| p.parse::<u32>().ok()) else {
+            continue;
+        };
         if pid != me && process_alive(pid) {
             continue;
         }
         let path = e.path();
         std::fs::remove_dir_all(&path).map_err(io_err(&path))?;
-        tracing::info!("removed the stale checkpoint temporary {} (process {pid} is gone)", path.display());
+        tracing::info!(
+            "removed the stale checkpoint temporary {} (process {pid} is gone)",
+            path.display()
+        );
         removed.push(path);
     }
     Ok(removed)
@@ -731,7 +965,10 @@ pub fn truncate_metrics(path: &Path, step: u64) -> Result<usize> {
     }
     if dropped > 0 {
         ggpt_core::io::atomic::write_bytes_atomic(path, kept.as_bytes())?;
-        tracing::info!("{}: dropped {dropped} line(s) past step {step}", path.display());
+        tracing::info!(
+            "{}: dropped {dropped} line(s) past step {step}",
+            path.display()
+        );
     }
     Ok(dropped)
 }
@@ -745,7 +982,10 @@ pub fn run(o: &TrainOptions, ctx: RunContext<'_>) -> Result<RunResult> {
     truncate_metrics(&ctx.out.join("metrics.jsonl"), ctx.start_step)?;
     let train = ctx.data.load_split(Split::Train)?;
     if train.is_empty() {
-        return Err(TrainError::Invalid(format!("{}: no training chunk", ctx.data.dir.display())));
+        return Err(TrainError::Invalid(format!(
+            "{}: no training chunk",
+            ctx.data.dir.display()
+        )));
     }
     let mut val = ctx.data.load_split(Split::Val)?;
     val.truncate(o.val_chunks);
@@ -763,7 +1003,10 @@ pub fn run(o: &TrainOptions, ctx: RunContext<'_>) -> Result<RunResult> {
     let make_state = |step: u64, last_val: &Option<ChunkValidation>| TrainState {
         step,
         options: o.clone(),
-        rng: format!("pcg64 batches and backend RNG reseeded per step from seed {} (no state to store)", o.seed),
+        rng: format!(
+            "pcg64 batches and backend RNG reseeded per step from seed {} (no state to store)",
+            o.seed
+        ),
         data: ctx.data.dir.clone(),
         last_validation: last_val.clone(),
     };
@@ -777,9 +1020,26 @@ pub fn run(o: &TrainOptions, ctx: RunContext<'_>) -> Result<RunResult> {
         ctx.device.seed(step_seed(o.seed, step, 2));
         let lr = learning_rate(o, step);
         let ts = Instant::now();
-        let devices = if ctx.replicas.is_empty() { std::slice::from_ref(&ctx.device) } else { &ctx.replicas[..] };
-        let plan = StepPlan { devices, grad_accum: o.grad_accum.max(1), drop_path_seed: Some(step_seed(o.seed, step, 4)), recompute: o.recompute };
-        let (m, sl) = parallel_step(model, &mut optim, &o.model, &chunks, lr, o.clip_grad_norm, &plan)?;
+        let devices = if ctx.replicas.is_empty() {
+            std::slice::from_ref(&ctx.device)
+        } else {
+            &ctx.replicas[..]
+        };
+        let plan = StepPlan {
+            devices,
+            grad_accum: o.grad_accum.max(1),
+            drop_path_seed: Some(step_seed(o.seed, step, 4)),
+            recompute: o.recompute,
+        };
+        let (m, sl) = parallel_step(
+            model,
+            &mut optim,
+            &o.model,
+            &chunks,
+            lr,
+            o.clip_grad_norm,
+            &plan,
+        )?;
         model = m;
         let dt = ts.elapsed().as_secs_f64().max(1e-9);
         step += 1;
@@ -798,7 +1058,8 @@ pub fn run(o: &TrainOptions, ctx: RunContext<'_>) -> Result<RunResult> {
         };
         append_metrics(&metrics_path, &line)?;
         (ctx.on_step)(&line);
-        let do_val = !val.is_empty() && ((o.val_every > 0 && step % o.val_every == 0) || step == o.steps);
+        let do_val = !val.is_empty()
+            && ((o.val_every > 0 && step.is_multiple_of(o.val_every)) || step == o.steps);
         if do_val {
             let v = validate_chunks(&model, &o.model, &val, scenes, &plain, o.val_max_tokens)?;
             tracing::info!(
@@ -809,23 +1070,35 @@ pub fn run(o: &TrainOptions, ctx: RunContext<'_>) -> Result<RunResult> {
                 v.input_auc10,
                 v.refined_auc10
             );
-            let vl = MetricsLine { kind: "val".into(), loss: v.loss, loss_conf: None, loss_id: None, val: Some(v.clone()), ..line.clone() };
+            let vl = MetricsLine {
+                kind: "val".into(),
+                loss: v.loss,
+                loss_conf: None,
+                loss_id: None,
+                val: Some(v.clone()),
+                ..line.clone()
+            };
             append_metrics(&metrics_path, &vl)?;
             last_val = Some(v);
         }
-        if o.save_every > 0 && step % o.save_every == 0 {
+        if o.save_every > 0 && step.is_multiple_of(o.save_every) {
             save_checkpoint(ctx.out, &model, &optim, &make_state(step, &last_val))?;
         }
     }
     save_checkpoint(ctx.out, &model, &optim, &make_state(step, &last_val))?;
-    Ok(RunResult { model, steps: step, validation: last_val, interrupted })
+    Ok(RunResult {
+        model,
+        steps: step,
+        validation: last_val,
+        interrupted,
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::chunkset::tests::toy_chunk;
     use crate::chunkset::ChunkSetWriter;
+    use crate::chunkset::tests::toy_chunk;
 
     #[allow(deprecated)]
     fn cpu() -> Device {
@@ -853,10 +1126,19 @@ mod tests {
                 source: "test".into(),
             });
             for k in 0..3 {
-                w.add_chunk(toy_chunk(idx, 60 + 7 * k, (s * 3 + k) as u32)).unwrap();
+                w.add_chunk(toy_chunk(idx, 60 + 7 * k, (s * 3 + k) as u32))
+                    .unwrap();
             }
         }
-        let v = w.add_scene(SceneEntry { name: "val".into(), split: Split::Val, views: 2, height: 14, width: 14, metres_per_unit: 1.0, source: "test".into() });
+        let v = w.add_scene(SceneEntry {
+            name: "val".into(),
+            split: Split::Val,
+            views: 2,
+            height: 14,
+            width: 14,
+            metres_per_unit: 1.0,
+            source: "test".into(),
+        });
         w.add_chunk(toy_chunk(v, 50, 99)).unwrap();
         w.finish().unwrap();
         ChunkSet::open(dir).unwrap()
@@ -894,7 +1176,14 @@ mod tests {
         struct Collect(Vec<f32>);
         impl ModuleVisitor for Collect {
             fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-                self.0.extend(param.val().into_data().convert::<f32>().try_to_vec::<f32>().unwrap());
+                self.0.extend(
+                    param
+                        .val()
+                        .into_data()
+                        .convert::<f32>()
+                        .try_to_vec::<f32>()
+                        .unwrap(),
+                );
             }
         }
         let mut c = Collect(Vec::new());
@@ -902,13 +1191,43 @@ mod tests {
         c.0
     }
 
-    fn train(o: &TrainOptions, out: &Path, data: &ChunkSet, model: Ggpt, optim: ModuleOptimizer, start: u64, stop_after: Option<u64>, losses: &mut Vec<(u64, f64)>) -> RunResult {
-        train_on(Vec::new(), o, out, data, model, optim, start, stop_after, losses)
+    #[allow(clippy::too_many_arguments)]
+    fn train(
+        o: &TrainOptions,
+        out: &Path,
+        data: &ChunkSet,
+        model: Ggpt,
+        optim: ModuleOptimizer,
+        start: u64,
+        stop_after: Option<u64>,
+        losses: &mut Vec<(u64, f64)>,
+    ) -> RunResult {
+        train_on(
+            Vec::new(),
+            o,
+            out,
+            data,
+            model,
+            optim,
+            start,
+            stop_after,
+            losses,
+        )
     }
 
     /// [`train`] with data-parallel `replicas` (empty: one device).
     #[allow(clippy::too_many_arguments)]
-    fn train_on(replicas: Vec<Device>, o: &TrainOptions, out: &Path, data: &ChunkSet, model: Ggpt, optim: ModuleOptimizer, start: u64, stop_after: Option<u64>, losses: &mut Vec<(u64, f64)>) -> RunResult {
+    fn train_on(
+        replicas: Vec<Device>,
+        o: &TrainOptions,
+        out: &Path,
+        data: &ChunkSet,
+        model: Ggpt,
+        optim: ModuleOptimizer,
+        start: u64,
+        stop_after: Option<u64>,
+        losses: &mut Vec<(u64, f64)>,
+    ) -> RunResult {
         let stop = Arc::new(AtomicBool::new(false));
         let flag = stop.clone();
         let mut on_step = |l: &MetricsLine| {
@@ -918,17 +1237,37 @@ mod tests {
             }
         };
         let device = cpu().autodiff();
-        run(o, RunContext { out, data, device, replicas, model, optim, start_step: start, stop, on_step: &mut on_step }).unwrap()
+        run(
+            o,
+            RunContext {
+                out,
+                data,
+                device,
+                replicas,
+                model,
+                optim,
+                start_step: start,
+                stop,
+                on_step: &mut on_step,
+            },
+        )
+        .unwrap()
     }
 
     fn rel_to_max(a: &[f32], b: &[f32]) -> f32 {
         assert_eq!(a.len(), b.len());
         let max = a.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-30);
-        a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max) / max
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max)
+            / max
     }
 
     fn toy_batch(n: usize) -> Vec<TrainChunk> {
-        (0..n).map(|i| toy_chunk(i % 3, 40 + 7 * i, i as u32 + 1)).collect()
+        (0..n)
+            .map(|i| toy_chunk(i % 3, 40 + 7 * i, i as u32 + 1))
+            .collect()
     }
 
     /// `--devices cpu,cpu` on a batch of 2B equals one device with `--grad-accum 2`: same parts,
@@ -942,26 +1281,65 @@ mod tests {
         let chunks: Vec<&TrainChunk> = batch.iter().collect();
         let two = [ad.clone(), ad.clone()];
         let step = |devices: &[Device], k: usize| {
-            let plan = StepPlan { devices, grad_accum: k, drop_path_seed: Some(99), recompute: Recompute::default() };
+            let plan = StepPlan {
+                devices,
+                grad_accum: k,
+                drop_path_seed: Some(99),
+                recompute: Recompute::default(),
+            };
             let mut optim = adam();
-            let (m, l) = parallel_step(fresh(&o, &ad), &mut optim, &o.model, &chunks, 1e-3, None, &plan).unwrap();
+            let (m, l) = parallel_step(
+                fresh(&o, &ad),
+                &mut optim,
+                &o.model,
+                &chunks,
+                1e-3,
+                None,
+                &plan,
+            )
+            .unwrap();
             // trainable parameters only: the running statistics follow different rules (mean
             // over replicas vs sequential updates within one)
-            let params: Vec<f32> = crate::grads::named_parameters(&m.valid()).unwrap().into_iter().flat_map(|t| t.values).collect();
+            let params: Vec<f32> = crate::grads::named_parameters(&m.valid())
+                .unwrap()
+                .into_iter()
+                .flat_map(|t| t.values)
+                .collect();
             (params, l)
         };
         let (w_dp, l_dp) = step(&two, 1);
         let (w_acc, l_acc) = step(std::slice::from_ref(&ad), 2);
         let d = rel_to_max(&w_acc, &w_dp);
         assert!(d <= 1e-6, "data parallel vs accumulation: {d:e}");
-        assert!((l_dp.total - l_acc.total).abs() <= 1e-6 * l_acc.total.abs(), "{} vs {}", l_dp.total, l_acc.total);
+        assert!(
+            (l_dp.total - l_acc.total).abs() <= 1e-6 * l_acc.total.abs(),
+            "{} vs {}",
+            l_dp.total,
+            l_acc.total
+        );
         // and it is not the one-forward step (BatchNorm statistics of the whole batch differ)
         let (w_one, _) = step(std::slice::from_ref(&ad), 1);
         assert!(rel_to_max(&w_one, &w_acc) > 0.0);
         // too small a batch is an error, not a silent empty replica
         let mut optim = adam();
-        let plan = StepPlan { devices: &two, grad_accum: 3, drop_path_seed: Some(1), recompute: Recompute::default() };
-        let e = parallel_step(fresh(&o, &ad), &mut optim, &o.model, &chunks, 1e-3, None, &plan).err().map(|e| e.to_string()).unwrap_or_default();
+        let plan = StepPlan {
+            devices: &two,
+            grad_accum: 3,
+            drop_path_seed: Some(1),
+            recompute: Recompute::default(),
+        };
+        let e = parallel_step(
+            fresh(&o, &ad),
+            &mut optim,
+            &o.model,
+            &chunks,
+            1e-3,
+            None,
+            &plan,
+        )
+        .err()
+        .map(|e| e.to_string())
+        .unwrap_or_default();
         assert!(e.contains("batch-size"), "{e}");
     }
 
@@ -984,9 +1362,15 @@ mod tests {
             m
         };
         let sgd_step = |devices: &[Device]| {
-            let plan = StepPlan { devices, grad_accum: 1, drop_path_seed: Some(5), recompute: Recompute::default() };
+            let plan = StepPlan {
+                devices,
+                grad_accum: 1,
+                drop_path_seed: Some(5),
+                recompute: Recompute::default(),
+            };
             let mut optim = burn::optim::SgdConfig::new().init();
-            let (m, _) = parallel_step(model(), &mut optim, &o.model, &chunks, 1.0, None, &plan).unwrap();
+            let (m, _) =
+                parallel_step(model(), &mut optim, &o.model, &chunks, 1.0, None, &plan).unwrap();
             weights(&m)
         };
         let w0 = weights(&model());
@@ -995,7 +1379,10 @@ mod tests {
         let g_two = grad(sgd_step(&[ad.clone(), ad.clone()]));
         assert!(g_one.iter().any(|g| *g != 0.0));
         let d = rel_to_max(&g_one, &g_two);
-        assert!(d <= 1e-5, "two replicas vs one device on the whole batch: {d:e}");
+        assert!(
+            d <= 1e-5,
+            "two replicas vs one device on the whole batch: {d:e}"
+        );
     }
 
     /// An interrupted and resumed two-replica run is bit-identical to an uninterrupted one.
@@ -1003,7 +1390,11 @@ mod tests {
     fn interrupted_and_resumed_two_replica_run_equals_uninterrupted_run() {
         let dir = tempfile::tempdir().unwrap();
         let data = toy_set(&dir.path().join("set"));
-        let o = TrainOptions { devices: vec!["ndarray".into(), "ndarray".into()], batch_size: 2, ..options(4) };
+        let o = TrainOptions {
+            devices: vec!["ndarray".into(), "ndarray".into()],
+            batch_size: 2,
+            ..options(4)
+        };
         let ad = cpu().autodiff();
         let two = || vec![ad.clone(), ad.clone()];
         let init = || {
@@ -1011,17 +1402,50 @@ mod tests {
             fresh(&o, &ad)
         };
         let mut la = Vec::new();
-        let a = train_on(two(), &o, &dir.path().join("a"), &data, init(), adam(), 0, None, &mut la);
+        let a = train_on(
+            two(),
+            &o,
+            &dir.path().join("a"),
+            &data,
+            init(),
+            adam(),
+            0,
+            None,
+            &mut la,
+        );
         let out_b = dir.path().join("b");
         let mut lb = Vec::new();
-        let b1 = train_on(two(), &o, &out_b, &data, init(), adam(), 0, Some(2), &mut lb);
+        let b1 = train_on(
+            two(),
+            &o,
+            &out_b,
+            &data,
+            init(),
+            adam(),
+            0,
+            Some(2),
+            &mut lb,
+        );
         assert!(b1.interrupted);
         let (model, optim, state) = load_checkpoint(&checkpoint_dir(&out_b, 2), &ad).unwrap();
         assert_eq!(state.options.devices, o.devices);
-        let b2 = train_on(two(), &o, &out_b, &data, model, optim, state.step, None, &mut lb);
+        let b2 = train_on(
+            two(),
+            &o,
+            &out_b,
+            &data,
+            model,
+            optim,
+            state.step,
+            None,
+            &mut lb,
+        );
         assert_eq!(la, lb, "per-step losses");
         let (wa, wb) = (weights(&a.model), weights(&b2.model));
-        assert_eq!(wa, wb, "weights and BatchNorm statistics of the resumed run");
+        assert_eq!(
+            wa, wb,
+            "weights and BatchNorm statistics of the resumed run"
+        );
     }
 
     /// A run stopped after step 3 (the Ctrl-C path: checkpoint at exit) and resumed from its
@@ -1035,26 +1459,65 @@ mod tests {
         let ad = cpu().autodiff();
 
         let mut losses_a = Vec::new();
-        let a = train(&o, &dir.path().join("a"), &data, fresh(&o, &ad), adam(), 0, None, &mut losses_a);
+        let a = train(
+            &o,
+            &dir.path().join("a"),
+            &data,
+            fresh(&o, &ad),
+            adam(),
+            0,
+            None,
+            &mut losses_a,
+        );
         assert_eq!((a.steps, a.interrupted), (6, false));
         assert!(a.validation.is_some(), "validation at the last step");
 
         let out_b = dir.path().join("b");
         let mut losses_b = Vec::new();
-        let b1 = train(&o, &out_b, &data, fresh(&o, &ad), adam(), 0, Some(3), &mut losses_b);
+        let b1 = train(
+            &o,
+            &out_b,
+            &data,
+            fresh(&o, &ad),
+            adam(),
+            0,
+            Some(3),
+            &mut losses_b,
+        );
         assert_eq!((b1.steps, b1.interrupted), (3, true));
-        let steps: Vec<u64> = list_checkpoints(&out_b).unwrap().iter().map(|(s, _)| *s).collect();
-        assert_eq!(steps, vec![2, 3], "periodic checkpoint at 2, exit checkpoint at 3");
+        let steps: Vec<u64> = list_checkpoints(&out_b)
+            .unwrap()
+            .iter()
+            .map(|(s, _)| *s)
+            .collect();
+        assert_eq!(
+            steps,
+            vec![2, 3],
+            "periodic checkpoint at 2, exit checkpoint at 3"
+        );
         let (model, optim, state) = load_checkpoint(&checkpoint_dir(&out_b, 3), &ad).unwrap();
         assert_eq!(state.step, 3);
         assert_eq!(state.options, o);
-        let b2 = train(&o, &out_b, &data, model, optim, state.step, None, &mut losses_b);
+        let b2 = train(
+            &o,
+            &out_b,
+            &data,
+            model,
+            optim,
+            state.step,
+            None,
+            &mut losses_b,
+        );
         assert_eq!((b2.steps, b2.interrupted), (6, false));
 
         assert_eq!(losses_a, losses_b, "per-step losses of the resumed run");
         let (wa, wb) = (weights(&a.model), weights(&b2.model));
         assert_eq!(wa.len(), wb.len());
-        let max = wa.iter().zip(&wb).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        let max = wa
+            .iter()
+            .zip(&wb)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
         assert_eq!(max, 0.0, "max |w_uninterrupted - w_resumed| = {max:e}");
         // the weights did change
         let w0 = weights(&fresh(&o, &ad));
@@ -1079,23 +1542,50 @@ mod tests {
         let o = options(1);
         let ad = cpu().autodiff();
         let stats = |m: &mut Ggpt| -> Vec<f32> {
-            m.batch_norms_mut().iter().flat_map(|bn| {
-                let mut v = bn.running_mean.value().into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
-                v.extend(bn.running_var.value().into_data().convert::<f32>().try_to_vec::<f32>().unwrap());
-                v
-            }).collect()
+            m.batch_norms_mut()
+                .iter()
+                .flat_map(|bn| {
+                    let mut v = bn
+                        .running_mean
+                        .value()
+                        .into_data()
+                        .convert::<f32>()
+                        .try_to_vec::<f32>()
+                        .unwrap();
+                    v.extend(
+                        bn.running_var
+                            .value()
+                            .into_data()
+                            .convert::<f32>()
+                            .try_to_vec::<f32>()
+                            .unwrap(),
+                    );
+                    v
+                })
+                .collect()
         };
         let mut before = fresh(&o, &ad);
         let s0 = stats(&mut before);
-        let mut a = recalibrate_batch_norm(fresh(&o, &ad), &o.model, &chunks, 2, 3, 11, &ad).unwrap();
-        let mut b = recalibrate_batch_norm(fresh(&o, &ad), &o.model, &chunks, 2, 3, 11, &ad).unwrap();
+        let mut a =
+            recalibrate_batch_norm(fresh(&o, &ad), &o.model, &chunks, 2, 3, 11, &ad).unwrap();
+        let mut b =
+            recalibrate_batch_norm(fresh(&o, &ad), &o.model, &chunks, 2, 3, 11, &ad).unwrap();
         let (sa, sb) = (stats(&mut a), stats(&mut b));
         assert_eq!(sa, sb, "same seed, same statistics");
         assert_eq!(sa.len(), s0.len());
-        assert!(sa.iter().zip(&s0).filter(|(x, y)| x != y).count() > sa.len() / 2, "running statistics replaced");
-        assert!(a.batch_norms_mut().iter().all(|bn| bn.momentum == o.model.bn_momentum), "momentum restored");
+        assert!(
+            sa.iter().zip(&s0).filter(|(x, y)| x != y).count() > sa.len() / 2,
+            "running statistics replaced"
+        );
+        assert!(
+            a.batch_norms_mut()
+                .iter()
+                .all(|bn| bn.momentum == o.model.bn_momentum),
+            "momentum restored"
+        );
         // one batch with momentum 1 equals a plain training-mode forward with momentum 1
-        let mut c = recalibrate_batch_norm(fresh(&o, &ad), &o.model, &chunks, 2, 1, 11, &ad).unwrap();
+        let mut c =
+            recalibrate_batch_norm(fresh(&o, &ad), &o.model, &chunks, 2, 1, 11, &ad).unwrap();
         let mut d = fresh(&o, &ad);
         d.set_drop_path(0.0);
         for bn in d.batch_norms_mut() {
@@ -1105,7 +1595,11 @@ mod tests {
         let inputs: Vec<_> = idx.iter().map(|&i| chunks[i].to_input()).collect();
         let _ = d.forward(&ggpt_model::infer::prepare_chunks(&o.model, &inputs, &ad).unwrap());
         let (sc, sd) = (stats(&mut c), stats(&mut d));
-        let max = sc.iter().zip(&sd).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        let max = sc
+            .iter()
+            .zip(&sd)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
         assert!(max < 1e-6, "max |difference| {max:e}");
     }
 
@@ -1126,13 +1620,21 @@ mod tests {
 
     #[test]
     fn cosine_schedule_warms_up_and_decays_to_zero() {
-        let o = TrainOptions { steps: 10, warmup_steps: 2, lr: 1.0, ..options(10) };
+        let o = TrainOptions {
+            steps: 10,
+            warmup_steps: 2,
+            lr: 1.0,
+            ..options(10)
+        };
         assert!((learning_rate(&o, 0) - 0.5).abs() < 1e-12);
         assert!((learning_rate(&o, 1) - 1.0).abs() < 1e-12);
         assert!((learning_rate(&o, 2) - 1.0).abs() < 1e-12);
         assert!(learning_rate(&o, 6) < 1.0 && learning_rate(&o, 6) > 0.0);
         assert!(learning_rate(&o, 10).abs() < 1e-12);
-        let c = TrainOptions { lr_schedule: LrSchedule::Constant, ..o };
+        let c = TrainOptions {
+            lr_schedule: LrSchedule::Constant,
+            ..o
+        };
         assert_eq!(learning_rate(&c, 7), 1.0);
     }
 
@@ -1158,16 +1660,32 @@ mod tests {
     fn truncate_metrics_drops_lines_past_the_step_and_torn_lines() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("metrics.jsonl");
-        assert_eq!(truncate_metrics(&path, 3).unwrap(), 0, "a missing file is fine");
-        let kept: Vec<String> = vec![metrics_line(1, "train"), metrics_line(2, "train"), metrics_line(2, "val"), metrics_line(3, "train")];
+        assert_eq!(
+            truncate_metrics(&path, 3).unwrap(),
+            0,
+            "a missing file is fine"
+        );
+        let kept: Vec<String> = vec![
+            metrics_line(1, "train"),
+            metrics_line(2, "train"),
+            metrics_line(2, "val"),
+            metrics_line(3, "train"),
+        ];
         let mut text = kept.join("\n") + "\n";
         text += &(metrics_line(4, "train") + "\n" + &metrics_line(5, "train") + "\n");
         text += &metrics_line(6, "train")[..20]; // torn by a crash
         std::fs::write(&path, &text).unwrap();
         assert_eq!(truncate_metrics(&path, 3).unwrap(), 3);
-        assert_eq!(std::fs::read_to_string(&path).unwrap(), kept.join("\n") + "\n");
+        assert_eq!(
+            std::fs::read_to_string(&path).unwrap(),
+            kept.join("\n") + "\n"
+        );
         assert_eq!(truncate_metrics(&path, 3).unwrap(), 0, "idempotent");
-        assert_eq!(truncate_metrics(&path, 0).unwrap(), 4, "a fresh run starts a new file");
+        assert_eq!(
+            truncate_metrics(&path, 0).unwrap(),
+            4,
+            "a fresh run starts a new file"
+        );
         assert_eq!(std::fs::read_to_string(&path).unwrap(), "");
     }
 
@@ -1180,7 +1698,10 @@ mod tests {
         let dead = gone.id();
         gone.wait().unwrap();
         // A live process that is not this one: a sleeping child.
-        let mut live_child = std::process::Command::new("sleep").arg("30").spawn().unwrap();
+        let mut live_child = std::process::Command::new("sleep")
+            .arg("30")
+            .spawn()
+            .unwrap();
         let stale = root.join(format!(".tmp-step-00000007-{dead}"));
         let mine = root.join(format!(".tmp-step-00000008-{}", std::process::id()));
         let live = root.join(format!(".tmp-step-00000009-{}", live_child.id()));
@@ -1192,7 +1713,10 @@ mod tests {
         live_child.kill().unwrap();
         live_child.wait().unwrap();
         assert_eq!(removed.len(), 2, "{removed:?}");
-        assert!(!stale.exists() && !mine.exists(), "this process has not started writing: its own name is stale too");
+        assert!(
+            !stale.exists() && !mine.exists(),
+            "this process has not started writing: its own name is stale too"
+        );
         assert!(live.exists() && other.exists());
     }
 }

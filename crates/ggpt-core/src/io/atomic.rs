@@ -27,7 +27,10 @@ where
         let mut writer = std::io::BufWriter::new(file);
         fill(&mut writer)?;
         writer.flush()?;
-        writer.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+        writer
+            .into_inner()
+            .map_err(|e| e.into_error())?
+            .sync_all()?;
         std::fs::rename(&tmp, path)
     })();
     if let Err(e) = result {
@@ -45,7 +48,8 @@ pub fn write_bytes_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 /// Writes `value` as pretty JSON with a final newline, atomically (see [`write_atomic`]): the
 /// one JSON writer of every report, `config.json` and `meta.json`.
 pub fn write_json_atomic(path: &Path, value: &impl serde::Serialize) -> Result<()> {
-    let mut text = serde_json::to_string_pretty(value).map_err(|e| CoreError::format(path, "", format!("cannot serialise JSON: {e}")))?;
+    let mut text = serde_json::to_string_pretty(value)
+        .map_err(|e| CoreError::format(path, "", format!("cannot serialise JSON: {e}")))?;
     text.push('\n');
     write_bytes_atomic(path, text.as_bytes())
 }
@@ -61,7 +65,10 @@ mod tests {
         write_bytes_atomic(&p, b"one").unwrap();
         write_bytes_atomic(&p, b"two").unwrap();
         assert_eq!(std::fs::read(&p).unwrap(), b"two");
-        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+        let names: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
         assert_eq!(names.len(), 1, "temp files left: {names:?}");
     }
 

@@ -55,7 +55,11 @@ const MODELS: [(ColmapCameraModel, i32, &str, usize); 7] = [
 
 impl ColmapCameraModel {
     fn row(self) -> (ColmapCameraModel, i32, &'static str, usize) {
-        MODELS.iter().copied().find(|r| r.0 == self).unwrap_or(MODELS[0])
+        MODELS
+            .iter()
+            .copied()
+            .find(|r| r.0 == self)
+            .unwrap_or(MODELS[0])
     }
     /// COLMAP model id.
     pub fn id(self) -> i32 {
@@ -175,21 +179,48 @@ impl ColmapCamera {
     pub fn to_pinhole(&self) -> std::result::Result<Matrix3<f64>, String> {
         let p = &self.params;
         if p.len() != self.model.num_params() {
-            return Err(format!("camera {}: {} parameters, {} expects {}", self.id, p.len(), self.model.name(), self.model.num_params()));
+            return Err(format!(
+                "camera {}: {} parameters, {} expects {}",
+                self.id,
+                p.len(),
+                self.model.name(),
+                self.model.num_params()
+            ));
         }
         let (fx, fy, cx, cy, dist): (f64, f64, f64, f64, &[f64]) = match self.model {
             ColmapCameraModel::SimplePinhole => (p[0], p[0], p[1], p[2], &[]),
             ColmapCameraModel::Pinhole => (p[0], p[1], p[2], p[3], &[]),
-            ColmapCameraModel::SimpleRadial | ColmapCameraModel::Radial => (p[0], p[0], p[1], p[2], &p[3..]),
-            ColmapCameraModel::Opencv | ColmapCameraModel::FullOpencv => (p[0], p[1], p[2], p[3], &p[4..]),
+            ColmapCameraModel::SimpleRadial | ColmapCameraModel::Radial => {
+                (p[0], p[0], p[1], p[2], &p[3..])
+            }
+            ColmapCameraModel::Opencv | ColmapCameraModel::FullOpencv => {
+                (p[0], p[1], p[2], p[3], &p[4..])
+            }
             ColmapCameraModel::OpencvFisheye => {
-                return Err(format!("camera {}: OPENCV_FISHEYE (equidistant projection) cannot be represented as a pinhole camera", self.id));
+                return Err(format!(
+                    "camera {}: OPENCV_FISHEYE (equidistant projection) cannot be represented as a pinhole camera",
+                    self.id
+                ));
             }
         };
         if let Some(d) = dist.iter().find(|d| **d != 0.0) {
-            return Err(format!("camera {}: {} with non-zero distortion ({d}) is not supported; undistort the images first", self.id, self.model.name()));
+            return Err(format!(
+                "camera {}: {} with non-zero distortion ({d}) is not supported; undistort the images first",
+                self.id,
+                self.model.name()
+            ));
         }
-        Ok(Matrix3::new(fx, 0.0, cx - 0.5, 0.0, fy, cy - 0.5, 0.0, 0.0, 1.0))
+        Ok(Matrix3::new(
+            fx,
+            0.0,
+            cx - 0.5,
+            0.0,
+            fy,
+            cy - 0.5,
+            0.0,
+            0.0,
+            1.0,
+        ))
     }
 }
 
@@ -205,21 +236,45 @@ impl ColmapModel {
     /// `f = (fx + fy) / 2` of `sfm.md` §7.1) camera per view, or one shared camera (view 0's K)
     /// when `shared`; images named `names[i]`, ids `1..N`. No 3D points. The one writer of COLMAP
     /// cameras and images in the workspace (`ggpt-sfm` and `ggpt-scene` exports use it).
-    pub fn from_cameras(cams: &Cameras, h: usize, w: usize, names: &[String], simple: bool, shared: bool) -> Result<Self> {
+    pub fn from_cameras(
+        cams: &Cameras,
+        h: usize,
+        w: usize,
+        names: &[String],
+        simple: bool,
+        shared: bool,
+    ) -> Result<Self> {
         if names.len() != cams.len() {
-            return Err(CoreError::Invalid(format!("{} image names for {} cameras", names.len(), cams.len())));
+            return Err(CoreError::Invalid(format!(
+                "{} image names for {} cameras",
+                names.len(),
+                cams.len()
+            )));
         }
         let mut model = ColmapModel::default();
         for (i, (k, name)) in cams.intrinsics.iter().zip(names).enumerate() {
-            let id = u32::try_from(i + 1).map_err(|_| CoreError::Invalid("too many views".into()))?;
+            let id =
+                u32::try_from(i + 1).map_err(|_| CoreError::Invalid("too many views".into()))?;
             if !shared || i == 0 {
                 let (cx, cy) = (k[(0, 2)] + 0.5, k[(1, 2)] + 0.5);
                 let (m, params) = if simple {
-                    (ColmapCameraModel::SimplePinhole, vec![simple_pinhole_focal(k), cx, cy])
+                    (
+                        ColmapCameraModel::SimplePinhole,
+                        vec![simple_pinhole_focal(k), cx, cy],
+                    )
                 } else {
-                    (ColmapCameraModel::Pinhole, vec![k[(0, 0)], k[(1, 1)], cx, cy])
+                    (
+                        ColmapCameraModel::Pinhole,
+                        vec![k[(0, 0)], k[(1, 1)], cx, cy],
+                    )
                 };
-                model.cameras.push(ColmapCamera { id, model: m, width: w as u64, height: h as u64, params });
+                model.cameras.push(ColmapCamera {
+                    id,
+                    model: m,
+                    width: w as u64,
+                    height: h as u64,
+                    params,
+                });
             }
             let r = cams.rotation(i);
             let t = cams.translation(i);
@@ -238,15 +293,26 @@ impl ColmapModel {
     /// Pipeline cameras of the images in file order (`cam_from_world` from the quaternion,
     /// pinhole K in pixel-centre convention), plus the image names. `path` names errors.
     pub fn to_cameras(&self, path: &Path) -> Result<(Cameras, Vec<String>)> {
-        let mut cams = Cameras { cam_from_world: Vec::new(), intrinsics: Vec::new() };
+        let mut cams = Cameras {
+            cam_from_world: Vec::new(),
+            intrinsics: Vec::new(),
+        };
         let mut names = Vec::new();
         for im in &self.images {
             let cam = self
                 .cameras
                 .iter()
                 .find(|c| c.id == im.camera_id)
-                .ok_or_else(|| CoreError::format(path, format!("image {}", im.id), format!("unknown camera id {}", im.camera_id)))?;
-            let k = cam.to_pinhole().map_err(|m| CoreError::format(path, format!("camera {}", cam.id), m))?;
+                .ok_or_else(|| {
+                    CoreError::format(
+                        path,
+                        format!("image {}", im.id),
+                        format!("unknown camera id {}", im.camera_id),
+                    )
+                })?;
+            let k = cam
+                .to_pinhole()
+                .map_err(|m| CoreError::format(path, format!("camera {}", cam.id), m))?;
             let r = qvec_to_rotation(im.qvec);
             let mut m = Matrix3x4::zeros();
             m.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
@@ -267,13 +333,28 @@ impl ColmapModel {
 /// `SIMPLE_PINHOLE` / `PINHOLE` cameras are written; each file is atomic.
 pub fn write_colmap(dir: &Path, model: &ColmapModel, text: bool) -> Result<()> {
     for c in &model.cameras {
-        if !matches!(c.model, ColmapCameraModel::SimplePinhole | ColmapCameraModel::Pinhole) || c.params.len() != c.model.num_params() {
-            return Err(CoreError::format(dir, format!("camera {}", c.id), "the writer emits SIMPLE_PINHOLE / PINHOLE with the right parameter count only"));
+        if !matches!(
+            c.model,
+            ColmapCameraModel::SimplePinhole | ColmapCameraModel::Pinhole
+        ) || c.params.len() != c.model.num_params()
+        {
+            return Err(CoreError::format(
+                dir,
+                format!("camera {}", c.id),
+                "the writer emits SIMPLE_PINHOLE / PINHOLE with the right parameter count only",
+            ));
         }
     }
     for im in &model.images {
-        if im.name.is_empty() || im.name.contains(['\n', '\0']) || (text && im.name.contains(char::is_whitespace)) {
-            return Err(CoreError::format(dir, format!("image {}", im.id), format!("image name {:?} cannot be written", im.name)));
+        if im.name.is_empty()
+            || im.name.contains(['\n', '\0'])
+            || (text && im.name.contains(char::is_whitespace))
+        {
+            return Err(CoreError::format(
+                dir,
+                format!("image {}", im.id),
+                format!("image name {:?} cannot be written", im.name),
+            ));
         }
     }
     let ext = if text { "txt" } else { "bin" };
@@ -352,7 +433,15 @@ fn cameras_txt(w: &mut dyn Write, m: &ColmapModel) -> std::io::Result<()> {
     writeln!(w, "# Number of cameras: {}", m.cameras.len())?;
     for c in &m.cameras {
         let params: Vec<String> = c.params.iter().map(|&v| f(v)).collect();
-        writeln!(w, "{} {} {} {} {}", c.id, c.model.name(), c.width, c.height, params.join(" "))?;
+        writeln!(
+            w,
+            "{} {} {} {} {}",
+            c.id,
+            c.model.name(),
+            c.width,
+            c.height,
+            params.join(" ")
+        )?;
     }
     Ok(())
 }
@@ -360,16 +449,35 @@ fn cameras_txt(w: &mut dyn Write, m: &ColmapModel) -> std::io::Result<()> {
 fn images_txt(w: &mut dyn Write, m: &ColmapModel) -> std::io::Result<()> {
     let n_obs: usize = m.images.iter().map(|i| i.points2d.len()).sum();
     writeln!(w, "# Image list with two lines of data per image:")?;
-    writeln!(w, "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME")?;
+    writeln!(
+        w,
+        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME"
+    )?;
     writeln!(w, "#   POINTS2D[] as (X, Y, POINT3D_ID)")?;
-    writeln!(w, "# Number of images: {}, mean observations per image: {}", m.images.len(), if m.images.is_empty() { 0.0 } else { n_obs as f64 / m.images.len() as f64 })?;
+    writeln!(
+        w,
+        "# Number of images: {}, mean observations per image: {}",
+        m.images.len(),
+        if m.images.is_empty() {
+            0.0
+        } else {
+            n_obs as f64 / m.images.len() as f64
+        }
+    )?;
     for im in &m.images {
         let q: Vec<String> = im.qvec.iter().chain(&im.tvec).map(|&v| f(v)).collect();
         writeln!(w, "{} {} {} {}", im.id, q.join(" "), im.camera_id, im.name)?;
         let pts: Vec<String> = im
             .points2d
             .iter()
-            .map(|p| format!("{} {} {}", f(p.xy[0]), f(p.xy[1]), p.point3d_id.map_or("-1".to_string(), |i| i.to_string())))
+            .map(|p| {
+                format!(
+                    "{} {} {}",
+                    f(p.xy[0]),
+                    f(p.xy[1]),
+                    p.point3d_id.map_or("-1".to_string(), |i| i.to_string())
+                )
+            })
             .collect();
         writeln!(w, "{}", pts.join(" "))?;
     }
@@ -378,12 +486,27 @@ fn images_txt(w: &mut dyn Write, m: &ColmapModel) -> std::io::Result<()> {
 
 fn points_txt(w: &mut dyn Write, m: &ColmapModel) -> std::io::Result<()> {
     writeln!(w, "# 3D point list with one line of data per point:")?;
-    writeln!(w, "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)")?;
+    writeln!(
+        w,
+        "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)"
+    )?;
     writeln!(w, "# Number of points: {}", m.points3d.len())?;
     for p in &m.points3d {
         let track: Vec<String> = p.track.iter().map(|(a, b)| format!("{a} {b}")).collect();
         let sep = if track.is_empty() { "" } else { " " };
-        writeln!(w, "{} {} {} {} {} {} {} {}{sep}{}", p.id, f(p.xyz[0]), f(p.xyz[1]), f(p.xyz[2]), p.rgb[0], p.rgb[1], p.rgb[2], f(p.error), track.join(" "))?;
+        writeln!(
+            w,
+            "{} {} {} {} {} {} {} {}{sep}{}",
+            p.id,
+            f(p.xyz[0]),
+            f(p.xyz[1]),
+            f(p.xyz[2]),
+            p.rgb[0],
+            p.rgb[1],
+            p.rgb[2],
+            f(p.error),
+            track.join(" ")
+        )?;
     }
     Ok(())
 }
@@ -399,12 +522,24 @@ pub fn read_colmap(dir: &Path) -> Result<ColmapModel> {
     let txt = ["cameras", "images", "points3D"].map(|n| dir.join(format!("{n}.txt")));
     if bin[0].is_file() {
         let [c, i, p] = bin;
-        Ok(ColmapModel { cameras: read_cameras_bin(&c)?, images: read_images_bin(&i)?, points3d: read_points_bin(&p)? })
+        Ok(ColmapModel {
+            cameras: read_cameras_bin(&c)?,
+            images: read_images_bin(&i)?,
+            points3d: read_points_bin(&p)?,
+        })
     } else if txt[0].is_file() {
         let [c, i, p] = txt;
-        Ok(ColmapModel { cameras: read_cameras_txt(&c)?, images: read_images_txt(&i)?, points3d: read_points_txt(&p)? })
+        Ok(ColmapModel {
+            cameras: read_cameras_txt(&c)?,
+            images: read_images_txt(&i)?,
+            points3d: read_points_txt(&p)?,
+        })
     } else {
-        Err(CoreError::format(dir, "", "no COLMAP model (cameras.bin or cameras.txt) in this directory"))
+        Err(CoreError::format(
+            dir,
+            "",
+            "no COLMAP model (cameras.bin or cameras.txt) in this directory",
+        ))
     }
 }
 
@@ -417,10 +552,23 @@ struct Cur {
 
 impl Cur {
     fn open(path: &Path) -> Result<Self> {
-        Ok(Self { path: path.to_path_buf(), b: std::fs::read(path).map_err(|e| CoreError::io(path, e))?, pos: 0 })
+        Ok(Self {
+            path: path.to_path_buf(),
+            b: std::fs::read(path).map_err(|e| CoreError::io(path, e))?,
+            pos: 0,
+        })
     }
     fn take(&mut self, n: usize, what: &str) -> Result<&[u8]> {
-        let s = self.b.get(self.pos..self.pos.saturating_add(n)).ok_or_else(|| CoreError::format(&self.path, what, format!("truncated file at byte {}", self.pos)))?;
+        let s = self
+            .b
+            .get(self.pos..self.pos.saturating_add(n))
+            .ok_or_else(|| {
+                CoreError::format(
+                    &self.path,
+                    what,
+                    format!("truncated file at byte {}", self.pos),
+                )
+            })?;
         self.pos += n;
         Ok(s)
     }
@@ -447,13 +595,26 @@ impl Cur {
         let n = self.u64(what)?;
         let left = (self.b.len() - self.pos) as u64;
         if n.saturating_mul(min_rec as u64) > left {
-            return Err(CoreError::format(&self.path, what, format!("count {n} exceeds what the remaining {left} bytes can hold (truncated or corrupt)")));
+            return Err(CoreError::format(
+                &self.path,
+                what,
+                format!(
+                    "count {n} exceeds what the remaining {left} bytes can hold (truncated or corrupt)"
+                ),
+            ));
         }
         Ok(n as usize)
     }
     fn done(&self) -> Result<()> {
         if self.pos != self.b.len() {
-            return Err(CoreError::format(&self.path, "", format!("{} trailing bytes after the last record", self.b.len() - self.pos)));
+            return Err(CoreError::format(
+                &self.path,
+                "",
+                format!(
+                    "{} trailing bytes after the last record",
+                    self.b.len() - self.pos
+                ),
+            ));
         }
         Ok(())
     }
@@ -470,11 +631,24 @@ fn read_cameras_bin(path: &Path) -> Result<Vec<ColmapCamera>> {
         let what = format!("camera #{i}");
         let id = c.u32(&what)?;
         let mid = c.i32(&what)?;
-        let model = ColmapCameraModel::from_id(mid).ok_or_else(|| c.err(&what, format!("unsupported camera model id {mid} (supported: 0-6)")))?;
+        let model = ColmapCameraModel::from_id(mid).ok_or_else(|| {
+            c.err(
+                &what,
+                format!("unsupported camera model id {mid} (supported: 0-6)"),
+            )
+        })?;
         let width = c.u64(&what)?;
         let height = c.u64(&what)?;
-        let params = (0..model.num_params()).map(|_| c.f64(&what)).collect::<Result<Vec<_>>>()?;
-        out.push(ColmapCamera { id, model, width, height, params });
+        let params = (0..model.num_params())
+            .map(|_| c.f64(&what))
+            .collect::<Result<Vec<_>>>()?;
+        out.push(ColmapCamera {
+            id,
+            model,
+            width,
+            height,
+            params,
+        });
     }
     c.done()?;
     Ok(out)
@@ -493,17 +667,31 @@ fn read_images_bin(path: &Path) -> Result<Vec<ColmapImage>> {
         }
         let camera_id = c.u32(&what)?;
         let rest = c.b.get(c.pos..).unwrap_or_default();
-        let nul = rest.iter().position(|&b| b == 0).ok_or_else(|| c.err(&what, "unterminated image name"))?;
-        let name = String::from_utf8(rest[..nul].to_vec()).map_err(|_| c.err(&what, "image name is not UTF-8"))?;
+        let nul = rest
+            .iter()
+            .position(|&b| b == 0)
+            .ok_or_else(|| c.err(&what, "unterminated image name"))?;
+        let name = String::from_utf8(rest[..nul].to_vec())
+            .map_err(|_| c.err(&what, "image name is not UTF-8"))?;
         c.pos += nul + 1;
         let np = c.count(24, &what)?;
         let mut points2d = Vec::with_capacity(np);
         for _ in 0..np {
             let xy = [c.f64(&what)?, c.f64(&what)?];
             let pid = c.u64(&what)?;
-            points2d.push(ColmapPoint2D { xy, point3d_id: (pid != INVALID_POINT3D_ID).then_some(pid) });
+            points2d.push(ColmapPoint2D {
+                xy,
+                point3d_id: (pid != INVALID_POINT3D_ID).then_some(pid),
+            });
         }
-        out.push(ColmapImage { id, qvec: [v[0], v[1], v[2], v[3]], tvec: [v[4], v[5], v[6]], camera_id, name, points2d });
+        out.push(ColmapImage {
+            id,
+            qvec: [v[0], v[1], v[2], v[3]],
+            tvec: [v[4], v[5], v[6]],
+            camera_id,
+            name,
+            points2d,
+        });
     }
     c.done()?;
     Ok(out)
@@ -520,8 +708,16 @@ fn read_points_bin(path: &Path) -> Result<Vec<ColmapPoint3D>> {
         let rgb: [u8; 3] = c.arr(&what)?;
         let error = c.f64(&what)?;
         let nt = c.count(8, &what)?;
-        let track = (0..nt).map(|_| Ok((c.u32(&what)?, c.u32(&what)?))).collect::<Result<Vec<_>>>()?;
-        out.push(ColmapPoint3D { id, xyz, rgb, error, track });
+        let track = (0..nt)
+            .map(|_| Ok((c.u32(&what)?, c.u32(&what)?)))
+            .collect::<Result<Vec<_>>>()?;
+        out.push(ColmapPoint3D {
+            id,
+            xyz,
+            rgb,
+            error,
+            track,
+        });
     }
     c.done()?;
     Ok(out)
@@ -531,12 +727,24 @@ fn read_points_bin(path: &Path) -> Result<Vec<ColmapPoint3D>> {
 /// are kept (images.txt needs them) and filtered by the callers.
 fn text_lines(path: &Path) -> Result<Vec<(usize, String)>> {
     let s = std::fs::read_to_string(path).map_err(|e| CoreError::io(path, e))?;
-    Ok(s.lines().enumerate().map(|(i, l)| (i + 1, l.trim().to_string())).filter(|(_, l)| !l.starts_with('#')).collect())
+    Ok(s.lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l.trim().to_string()))
+        .filter(|(_, l)| !l.starts_with('#'))
+        .collect())
 }
 
-fn num<T: std::str::FromStr>(path: &Path, line: usize, tok: Option<&&str>, what: &str) -> Result<T> {
-    let t = tok.ok_or_else(|| CoreError::format(path, format!("line {line}"), format!("missing {what}")))?;
-    t.parse::<T>().map_err(|_| CoreError::format(path, format!("line {line}"), format!("bad {what} '{t}'")))
+fn num<T: std::str::FromStr>(
+    path: &Path,
+    line: usize,
+    tok: Option<&&str>,
+    what: &str,
+) -> Result<T> {
+    let t = tok.ok_or_else(|| {
+        CoreError::format(path, format!("line {line}"), format!("missing {what}"))
+    })?;
+    t.parse::<T>()
+        .map_err(|_| CoreError::format(path, format!("line {line}"), format!("bad {what} '{t}'")))
 }
 
 fn read_cameras_txt(path: &Path) -> Result<Vec<ColmapCamera>> {
@@ -550,10 +758,27 @@ fn read_cameras_txt(path: &Path) -> Result<Vec<ColmapCamera>> {
         let width = num(path, ln, t.get(2), "WIDTH")?;
         let height = num(path, ln, t.get(3), "HEIGHT")?;
         if t.len() != 4 + model.num_params() {
-            return Err(CoreError::format(path, format!("line {ln}"), format!("{} expects {} parameters, found {}", model.name(), model.num_params(), t.len().saturating_sub(4))));
+            return Err(CoreError::format(
+                path,
+                format!("line {ln}"),
+                format!(
+                    "{} expects {} parameters, found {}",
+                    model.name(),
+                    model.num_params(),
+                    t.len().saturating_sub(4)
+                ),
+            ));
         }
-        let params = (4..t.len()).map(|i| num::<f64>(path, ln, t.get(i), "parameter")).collect::<Result<Vec<_>>>()?;
-        out.push(ColmapCamera { id, model, width, height, params });
+        let params = (4..t.len())
+            .map(|i| num::<f64>(path, ln, t.get(i), "parameter"))
+            .collect::<Result<Vec<_>>>()?;
+        out.push(ColmapCamera {
+            id,
+            model,
+            width,
+            height,
+            params,
+        });
     }
     Ok(out)
 }
@@ -568,7 +793,11 @@ fn read_images_txt(path: &Path) -> Result<Vec<ColmapImage>> {
         }
         let t: Vec<&str> = l.split_whitespace().collect();
         if t.len() < 10 {
-            return Err(CoreError::format(path, format!("line {ln}"), "image line needs IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME"));
+            return Err(CoreError::format(
+                path,
+                format!("line {ln}"),
+                "image line needs IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME",
+            ));
         }
         let id = num(path, ln, t.first(), "IMAGE_ID")?;
         let mut v = [0.0; 7];
@@ -581,15 +810,32 @@ fn read_images_txt(path: &Path) -> Result<Vec<ColmapImage>> {
         let (pln, pl) = it.next().unwrap_or((ln + 1, String::new()));
         let pt: Vec<&str> = pl.split_whitespace().collect();
         if !pt.len().is_multiple_of(3) {
-            return Err(CoreError::format(path, format!("line {pln}"), "POINTS2D line must hold (X, Y, POINT3D_ID) triples"));
+            return Err(CoreError::format(
+                path,
+                format!("line {pln}"),
+                "POINTS2D line must hold (X, Y, POINT3D_ID) triples",
+            ));
         }
         let mut points2d = Vec::with_capacity(pt.len() / 3);
         for k in (0..pt.len()).step_by(3) {
-            let xy = [num(path, pln, pt.get(k), "X")?, num(path, pln, pt.get(k + 1), "Y")?];
+            let xy = [
+                num(path, pln, pt.get(k), "X")?,
+                num(path, pln, pt.get(k + 1), "Y")?,
+            ];
             let pid: i64 = num(path, pln, pt.get(k + 2), "POINT3D_ID")?;
-            points2d.push(ColmapPoint2D { xy, point3d_id: u64::try_from(pid).ok() });
+            points2d.push(ColmapPoint2D {
+                xy,
+                point3d_id: u64::try_from(pid).ok(),
+            });
         }
-        out.push(ColmapImage { id, qvec: [v[0], v[1], v[2], v[3]], tvec: [v[4], v[5], v[6]], camera_id, name, points2d });
+        out.push(ColmapImage {
+            id,
+            qvec: [v[0], v[1], v[2], v[3]],
+            tvec: [v[4], v[5], v[6]],
+            camera_id,
+            name,
+            points2d,
+        });
     }
     Ok(out)
 }
@@ -599,14 +845,40 @@ fn read_points_txt(path: &Path) -> Result<Vec<ColmapPoint3D>> {
     for (ln, l) in text_lines(path)?.into_iter().filter(|(_, l)| !l.is_empty()) {
         let t: Vec<&str> = l.split_whitespace().collect();
         if t.len() < 8 || !(t.len() - 8).is_multiple_of(2) {
-            return Err(CoreError::format(path, format!("line {ln}"), "point line needs POINT3D_ID X Y Z R G B ERROR and (IMAGE_ID, POINT2D_IDX) pairs"));
+            return Err(CoreError::format(
+                path,
+                format!("line {ln}"),
+                "point line needs POINT3D_ID X Y Z R G B ERROR and (IMAGE_ID, POINT2D_IDX) pairs",
+            ));
         }
         let id = num(path, ln, t.first(), "POINT3D_ID")?;
-        let xyz = [num(path, ln, t.get(1), "X")?, num(path, ln, t.get(2), "Y")?, num(path, ln, t.get(3), "Z")?];
-        let rgb = [num(path, ln, t.get(4), "R")?, num(path, ln, t.get(5), "G")?, num(path, ln, t.get(6), "B")?];
+        let xyz = [
+            num(path, ln, t.get(1), "X")?,
+            num(path, ln, t.get(2), "Y")?,
+            num(path, ln, t.get(3), "Z")?,
+        ];
+        let rgb = [
+            num(path, ln, t.get(4), "R")?,
+            num(path, ln, t.get(5), "G")?,
+            num(path, ln, t.get(6), "B")?,
+        ];
         let error = num(path, ln, t.get(7), "ERROR")?;
-        let track = (8..t.len()).step_by(2).map(|k| Ok((num(path, ln, t.get(k), "IMAGE_ID")?, num(path, ln, t.get(k + 1), "POINT2D_IDX")?))).collect::<Result<Vec<_>>>()?;
-        out.push(ColmapPoint3D { id, xyz, rgb, error, track });
+        let track = (8..t.len())
+            .step_by(2)
+            .map(|k| {
+                Ok((
+                    num(path, ln, t.get(k), "IMAGE_ID")?,
+                    num(path, ln, t.get(k + 1), "POINT2D_IDX")?,
+                ))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        out.push(ColmapPoint3D {
+            id,
+            xyz,
+            rgb,
+            error,
+            track,
+        });
     }
     Ok(out)
 }

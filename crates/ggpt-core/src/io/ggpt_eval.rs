@@ -16,8 +16,9 @@ use std::path::Path;
 
 use nalgebra::{Matrix3, Matrix3x4, Vector3};
 
-use crate::io::npy::{read_npy, NpyArray};
+use crate::io::npy::{NpyArray, read_npy};
 use crate::io::official::dir_name;
+use crate::resize::{BilinearRounding, resize_bilinear, resize_nearest_exact};
 use crate::{Cameras, CoreError, Dims, GroundTruth, Result, Scene};
 
 /// GT depth above which a pixel is valid (`pipeline.md` §10.1, `formats.md` §4).
@@ -74,14 +75,29 @@ pub fn read_raw_sequence(dir: &Path) -> Result<RawSequence> {
         if i == 0 {
             (height, width) = (h, w);
         } else if (h, w) != (height, width) {
-            return Err(CoreError::format(&ip, "", format!("image is {w}x{h}, view 0 is {width}x{height} (all views must share one size)")));
+            return Err(CoreError::format(
+                &ip,
+                "",
+                format!(
+                    "image is {w}x{h}, view 0 is {width}x{height} (all views must share one size)"
+                ),
+            ));
         }
         check_centred(&int_p, i, intrinsics.get(i), h, w)?;
         images.extend_from_slice(img.as_raw());
         let dp = dir.join("depths").join(name.replace(".jpg", ".npy"));
         depths.extend(read_depth(&dp, h, w)?);
     }
-    Ok(RawSequence { name: dir_name(dir), n, height, width, images, depths, cam_from_world, intrinsics })
+    Ok(RawSequence {
+        name: dir_name(dir),
+        n,
+        height,
+        width,
+        images,
+        depths,
+        cam_from_world,
+        intrinsics,
+    })
 }
 
 /// `images/` must hold exactly `000000.jpg .. {N-1:06}.jpg` (poses are looked up by index).
@@ -100,7 +116,11 @@ fn image_names(dir: &Path) -> Result<Vec<String>> {
     for (i, name) in names.iter().enumerate() {
         let want = format!("{i:06}.jpg");
         if *name != want {
-            return Err(CoreError::format(idir.join(name), "", format!("image {i} must be named {want} (views are matched to poses by index)")));
+            return Err(CoreError::format(
+                idir.join(name),
+                "",
+                format!("image {i} must be named {want} (views are matched to poses by index)"),
+            ));
         }
     }
     Ok(names)
@@ -110,13 +130,27 @@ fn image_names(dir: &Path) -> Result<Vec<String>> {
 /// A non-finite entry is reported with its view (the key) and its row / column.
 fn float_array(path: &Path, a: &NpyArray, shape: &[usize; 3]) -> Result<Vec<f64>> {
     if a.shape != shape {
-        return Err(CoreError::format(path, "", format!("wrong shape {:?}, expected {shape:?}", a.shape)));
+        return Err(CoreError::format(
+            path,
+            "",
+            format!("wrong shape {:?}, expected {shape:?}", a.shape),
+        ));
     }
-    let v = a.to_f64().ok_or_else(|| CoreError::format(path, "", format!("wrong dtype {}, expected <f4 or <f8", a.data.descr())))?;
+    let v = a.to_f64().ok_or_else(|| {
+        CoreError::format(
+            path,
+            "",
+            format!("wrong dtype {}, expected <f4 or <f8", a.data.descr()),
+        )
+    })?;
     if let Some(i) = v.iter().position(|x| !x.is_finite()) {
         let (rows, cols) = (shape[1], shape[2]);
         let (view, row, col) = (i / (rows * cols), i / cols % rows, i % cols);
-        return Err(CoreError::format(path, format!("view {view}"), format!("non-finite value {} at row {row}, column {col}", v[i])));
+        return Err(CoreError::format(
+            path,
+            format!("view {view}"),
+            format!("non-finite value {} at row {row}, column {col}", v[i]),
+        ));
     }
     Ok(v)
 }
@@ -127,7 +161,11 @@ fn read_extrinsics(path: &Path, n: usize) -> Result<Vec<Matrix3x4<f64>>> {
     for (i, m) in v.chunks_exact(16).enumerate() {
         let last = [m[12], m[13], m[14], m[15] - 1.0];
         if last.iter().any(|x| x.abs() > HOMOGENEOUS_ROW_TOL) {
-            return Err(CoreError::format(path, format!("view {i}"), "last row of cam_from_world is not 0 0 0 1"));
+            return Err(CoreError::format(
+                path,
+                format!("view {i}"),
+                "last row of cam_from_world is not 0 0 0 1",
+            ));
         }
         out.push(Matrix3x4::from_row_slice(&m[..12]));
     }
@@ -141,8 +179,15 @@ fn read_intrinsics(path: &Path, n: usize) -> Result<Vec<Matrix3<f64>>> {
         // Pinhole without skew: everything but fx, cx, fy, cy is 0 0 / 0 0 1 (the unprojection
         // and the resize to ff resolution use only fx, fy, cx, cy).
         let fixed = [(1, 0.0), (3, 0.0), (6, 0.0), (7, 0.0), (8, 1.0)];
-        if fixed.iter().any(|&(j, want)| (m[j] - want).abs() > HOMOGENEOUS_ROW_TOL) {
-            return Err(CoreError::format(path, format!("view {i}"), "not a pinhole K [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (skew or last row)"));
+        if fixed
+            .iter()
+            .any(|&(j, want)| (m[j] - want).abs() > HOMOGENEOUS_ROW_TOL)
+        {
+            return Err(CoreError::format(
+                path,
+                format!("view {i}"),
+                "not a pinhole K [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (skew or last row)",
+            ));
         }
         out.push(Matrix3::from_row_slice(m));
     }
@@ -150,18 +195,35 @@ fn read_intrinsics(path: &Path, n: usize) -> Result<Vec<Matrix3<f64>>> {
 }
 
 /// Official rule: `int((cx + 0.5) * 2) == W` and `int((cy + 0.5) * 2) == H`.
-fn check_centred(path: &Path, i: usize, k: Option<&Matrix3<f64>>, h: usize, w: usize) -> Result<()> {
+fn check_centred(
+    path: &Path,
+    i: usize,
+    k: Option<&Matrix3<f64>>,
+    h: usize,
+    w: usize,
+) -> Result<()> {
     let k = k.ok_or_else(|| CoreError::format(path, format!("view {i}"), "missing intrinsics"))?;
-    let (cw, ch) = (((k[(0, 2)] + 0.5) * 2.0).trunc(), ((k[(1, 2)] + 0.5) * 2.0).trunc());
+    let (cw, ch) = (
+        ((k[(0, 2)] + 0.5) * 2.0).trunc(),
+        ((k[(1, 2)] + 0.5) * 2.0).trunc(),
+    );
     if cw != w as f64 || ch != h as f64 {
         return Err(CoreError::format(
             path,
             format!("view {i}"),
-            format!("principal point ({}, {}) implies a {cw}x{ch} image, the image is {w}x{h} (principal point must be centred)", k[(0, 2)], k[(1, 2)]),
+            format!(
+                "principal point ({}, {}) implies a {cw}x{ch} image, the image is {w}x{h} (principal point must be centred)",
+                k[(0, 2)],
+                k[(1, 2)]
+            ),
         ));
     }
     if !(k[(0, 0)] > 0.0 && k[(1, 1)] > 0.0) {
-        return Err(CoreError::format(path, format!("view {i}"), "focal lengths must be positive"));
+        return Err(CoreError::format(
+            path,
+            format!("view {i}"),
+            "focal lengths must be positive",
+        ));
     }
     Ok(())
 }
@@ -169,12 +231,34 @@ fn check_centred(path: &Path, i: usize, k: Option<&Matrix3<f64>>, h: usize, w: u
 fn read_depth(path: &Path, h: usize, w: usize) -> Result<Vec<f32>> {
     let a = read_npy(path)?;
     if a.shape != [h, w] {
-        return Err(CoreError::format(path, "", format!("depth shape {:?} differs from the image size [{h}, {w}]", a.shape)));
+        return Err(CoreError::format(
+            path,
+            "",
+            format!(
+                "depth shape {:?} differs from the image size [{h}, {w}]",
+                a.shape
+            ),
+        ));
     }
     // Spec: float32; float64 is accepted too (rounded to f32, like the official float cast).
-    let v = a.to_f32().ok_or_else(|| CoreError::format(path, "", format!("wrong dtype {}, expected <f4 (or <f8)", a.data.descr())))?;
+    let v = a.to_f32().ok_or_else(|| {
+        CoreError::format(
+            path,
+            "",
+            format!("wrong dtype {}, expected <f4 (or <f8)", a.data.descr()),
+        )
+    })?;
     if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-        return Err(CoreError::format(path, "", format!("non-finite depth {} at row {}, column {}", v[i], i / w, i % w)));
+        return Err(CoreError::format(
+            path,
+            "",
+            format!(
+                "non-finite depth {} at row {}, column {}",
+                v[i],
+                i / w,
+                i % w
+            ),
+        ));
     }
     Ok(v)
 }
@@ -182,7 +266,11 @@ fn read_depth(path: &Path, h: usize, w: usize) -> Result<Vec<f32>> {
 /// Python's `round` (half to even) of a non-negative value.
 fn round_half_even(x: f64) -> f64 {
     let r = x.round();
-    if (x - x.trunc()).abs() == 0.5 && r % 2.0 != 0.0 { r - 1.0 } else { r }
+    if (x - x.trunc()).abs() == 0.5 && r % 2.0 != 0.0 {
+        r - 1.0
+    } else {
+        r
+    }
 }
 
 /// Feed-forward size `(h, w)` for an `H x W` input: `w = width`,
@@ -192,51 +280,10 @@ pub fn ff_size(height: usize, width_in: usize, width: usize) -> (usize, usize) {
     if width_in == 0 {
         return (0, width);
     }
-    let patches = round_half_even(height as f64 * (width as f64 / width_in as f64) / FF_PATCH as f64) as usize;
+    let patches =
+        round_half_even(height as f64 * (width as f64 / width_in as f64) / FF_PATCH as f64)
+            as usize;
     (patches.max(1).saturating_mul(FF_PATCH), width)
-}
-
-/// Source index and weight of a bilinear (`align_corners = false`) tap, computed in f32 like
-/// PyTorch: `src = max((i + 0.5) * in / out - 0.5, 0)`, upper neighbour clamped to `in - 1`.
-fn linear_taps(out: usize, inp: usize) -> Vec<(usize, usize, f32)> {
-    let scale = inp as f32 / out as f32;
-    (0..out)
-        .map(|i| {
-            let src = ((i as f32 + 0.5) * scale - 0.5).max(0.0);
-            let i0 = (src.floor() as usize).min(inp.saturating_sub(1));
-            let i1 = (i0 + 1).min(inp.saturating_sub(1));
-            (i0, i1, src - i0 as f32)
-        })
-        .collect()
-}
-
-/// Nearest-exact source index `min(floor((i + 0.5) * in / out), in - 1)` (f32, like PyTorch).
-fn nearest_exact(out: usize, inp: usize) -> Vec<usize> {
-    let scale = inp as f32 / out as f32;
-    (0..out).map(|i| (((i as f32 + 0.5) * scale).floor() as usize).min(inp.saturating_sub(1))).collect()
-}
-
-/// Bilinear resize (no antialias) of one `H x W x C` f32 image.
-pub fn resize_bilinear(src: &[f32], hin: usize, win: usize, c: usize, hout: usize, wout: usize) -> Vec<f32> {
-    let (ty, tx) = (linear_taps(hout, hin), linear_taps(wout, win));
-    let at = |y: usize, x: usize, ch: usize| src.get((y * win + x) * c + ch).copied().unwrap_or(0.0);
-    let mut out = Vec::with_capacity(hout * wout * c);
-    for &(y0, y1, ly) in &ty {
-        for &(x0, x1, lx) in &tx {
-            for ch in 0..c {
-                let top = (1.0 - lx) * at(y0, x0, ch) + lx * at(y0, x1, ch);
-                let bot = (1.0 - lx) * at(y1, x0, ch) + lx * at(y1, x1, ch);
-                out.push((1.0 - ly) * top + ly * bot);
-            }
-        }
-    }
-    out
-}
-
-/// Nearest-exact resize of one `H x W` f32 map.
-pub fn resize_nearest_exact(src: &[f32], hin: usize, win: usize, hout: usize, wout: usize) -> Vec<f32> {
-    let (iy, ix) = (nearest_exact(hout, hin), nearest_exact(wout, win));
-    iy.iter().flat_map(|&y| ix.iter().map(move |&x| src.get(y * win + x).copied().unwrap_or(0.0))).collect()
 }
 
 /// Resizes a raw sequence to the feed-forward resolution (`width` wide, usually
@@ -247,7 +294,10 @@ pub fn resize_nearest_exact(src: &[f32], hin: usize, win: usize, hout: usize, wo
 pub fn prepare_ff_resolution(raw: &RawSequence, width: usize) -> Result<Scene> {
     let (hin, win) = (raw.height, raw.width);
     if raw.n == 0 || hin == 0 || win == 0 || width == 0 {
-        return Err(CoreError::Invalid(format!("raw sequence '{}' is empty or width is 0", raw.name)));
+        return Err(CoreError::Invalid(format!(
+            "raw sequence '{}' is empty or width is 0",
+            raw.name
+        )));
     }
     let (px, n) = (hin * win, raw.n);
     let sizes = [
@@ -258,18 +308,41 @@ pub fn prepare_ff_resolution(raw: &RawSequence, width: usize) -> Result<Scene> {
     ];
     for (what, got, want) in sizes {
         if got != want {
-            return Err(CoreError::Invalid(format!("raw sequence '{}': {what} has {got} entries, expected {want} ({n} views of {win}x{hin})", raw.name)));
+            return Err(CoreError::Invalid(format!(
+                "raw sequence '{}': {what} has {got} entries, expected {want} ({n} views of {win}x{hin})",
+                raw.name
+            )));
         }
     }
     let (h, w) = ff_size(hin, win, width);
     let dims = Dims { n: raw.n, h, w };
     let (mut images, mut depth, mut intrinsics) = (Vec::new(), Vec::new(), Vec::new());
     for v in 0..raw.n {
-        let img: Vec<f32> = raw.images.get(v * hin * win * 3..(v + 1) * hin * win * 3).unwrap_or_default().iter().map(|&b| f32::from(b) / 255.0).collect();
-        images.extend(resize_bilinear(&img, hin, win, 3, h, w));
-        let d = raw.depths.get(v * hin * win..(v + 1) * hin * win).unwrap_or_default();
+        let img: Vec<f32> = raw
+            .images
+            .get(v * hin * win * 3..(v + 1) * hin * win * 3)
+            .unwrap_or_default()
+            .iter()
+            .map(|&b| f32::from(b) / 255.0)
+            .collect();
+        images.extend(resize_bilinear(
+            &img,
+            hin,
+            win,
+            3,
+            h,
+            w,
+            BilinearRounding::Separable,
+        )?);
+        let d = raw
+            .depths
+            .get(v * hin * win..(v + 1) * hin * win)
+            .unwrap_or_default();
         depth.extend(resize_nearest_exact(d, hin, win, h, w));
-        let k0 = raw.intrinsics.get(v).ok_or_else(|| CoreError::Invalid(format!("view {v}: missing intrinsics")))?;
+        let k0 = raw
+            .intrinsics
+            .get(v)
+            .ok_or_else(|| CoreError::Invalid(format!("view {v}: missing intrinsics")))?;
         let mut k = *k0;
         k[(0, 0)] *= w as f64 / win as f64;
         k[(1, 1)] *= h as f64 / hin as f64;
@@ -277,11 +350,27 @@ pub fn prepare_ff_resolution(raw: &RawSequence, width: usize) -> Result<Scene> {
         k[(1, 2)] = (h as f64 - 1.0) / 2.0;
         intrinsics.push(k);
     }
-    let cameras = Cameras { cam_from_world: raw.cam_from_world.clone(), intrinsics };
+    let cameras = Cameras {
+        cam_from_world: raw.cam_from_world.clone(),
+        intrinsics,
+    };
     let mask: Vec<bool> = depth.iter().map(|&d| d > DEPTH_VALID_MIN).collect();
     let points = unproject(&dims, &depth, &cameras);
-    let gt = GroundTruth { points, mask, depth: Some(depth), cameras };
-    let scene = Scene { name: raw.name.clone(), dims, images, gt: Some(gt), ff: None, sfm: None, matches: Vec::new() };
+    let gt = GroundTruth {
+        points,
+        mask,
+        depth: Some(depth),
+        cameras,
+    };
+    let scene = Scene {
+        name: raw.name.clone(),
+        dims,
+        images,
+        gt: Some(gt),
+        ff: None,
+        sfm: None,
+        matches: Vec::new(),
+    };
     scene.validate()?;
     Ok(scene)
 }
@@ -291,7 +380,9 @@ pub fn prepare_ff_resolution(raw: &RawSequence, width: usize) -> Result<Scene> {
 pub fn unproject(d: &Dims, depth: &[f32], cams: &Cameras) -> Vec<f32> {
     let mut out = vec![0.0f32; 3 * d.pixels()];
     for v in 0..d.n.min(cams.len()) {
-        let Some(&k) = cams.intrinsics.get(v) else { break };
+        let Some(&k) = cams.intrinsics.get(v) else {
+            break;
+        };
         let (r, t) = (cams.rotation(v), cams.translation(v));
         for y in 0..d.h {
             for x in 0..d.w {
@@ -301,7 +392,11 @@ pub fn unproject(d: &Dims, depth: &[f32], cams: &Cameras) -> Vec<f32> {
                     continue;
                 }
                 let z = f64::from(z);
-                let xc = Vector3::new((x as f64 - k[(0, 2)]) / k[(0, 0)] * z, (y as f64 - k[(1, 2)]) / k[(1, 1)] * z, z);
+                let xc = Vector3::new(
+                    (x as f64 - k[(0, 2)]) / k[(0, 0)] * z,
+                    (y as f64 - k[(1, 2)]) / k[(1, 1)] * z,
+                    z,
+                );
                 let xw = r.transpose() * (xc - t);
                 if let Some(o) = out.get_mut(3 * p..3 * p + 3) {
                     o.copy_from_slice(&[xw.x as f32, xw.y as f32, xw.z as f32]);

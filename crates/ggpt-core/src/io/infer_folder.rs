@@ -20,10 +20,10 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Matrix3, Matrix3x4};
 
-use crate::io::ggpt_eval::resize_bilinear;
 use crate::io::matches::read_matches;
 use crate::io::npy::{NpyArray, NpyData, read_npz};
 use crate::io::official::{dir_name, read_ff_outputs_bin, read_gt_bin, read_sfm_dlt_outputs_bin};
+use crate::resize::{BilinearRounding, resize_bilinear};
 use crate::{Cameras, CoreError, Dims, FeedForward, Result, Scene, SfmResult};
 
 /// Allowed distance of the ff principal point from one of the accepted conventions
@@ -46,13 +46,25 @@ pub fn read_infer_folder(dir: &Path) -> Result<Scene> {
     };
     let matches = read_matches_dir(dir, dims)?;
     if sfm.is_none() && matches.is_empty() {
-        return Err(CoreError::format(dir, "matches", "neither sfm.npz / sfm_dlt_outputs.bin nor matches/*.safetensors present"));
+        return Err(CoreError::format(
+            dir,
+            "matches",
+            "neither sfm.npz / sfm_dlt_outputs.bin nor matches/*.safetensors present",
+        ));
     }
     if images.is_none() {
         images = Some(read_image_dir(dir, dims)?);
     }
     let images = images.unwrap_or_default();
-    Ok(Scene { name: dir_name(dir), dims, images, gt, ff: Some(ff), sfm, matches })
+    Ok(Scene {
+        name: dir_name(dir),
+        dims,
+        images,
+        gt,
+        ff: Some(ff),
+        sfm,
+        matches,
+    })
 }
 
 fn check_dims(file: &Path, key: &str, got: Dims, want: Dims) -> Result<()> {
@@ -60,7 +72,10 @@ fn check_dims(file: &Path, key: &str, got: Dims, want: Dims) -> Result<()> {
         return Err(CoreError::format(
             file,
             key,
-            format!("N={} h={} w={} differ from the feed-forward N={} h={} w={}", got.n, got.h, got.w, want.n, want.h, want.w),
+            format!(
+                "N={} h={} w={} differ from the feed-forward N={} h={} w={}",
+                got.n, got.h, got.w, want.n, want.h, want.w
+            ),
         ));
     }
     Ok(())
@@ -72,27 +87,46 @@ fn read_ff_part(dir: &Path) -> Result<(FeedForward, Option<Vec<f32>>, Dims)> {
     if !npz.is_file() {
         let bin = dir.join("ff_outputs.bin");
         if !bin.is_file() {
-            return Err(CoreError::format(dir, "ff.npz", "missing feed-forward outputs (ff.npz or ff_outputs.bin)"));
+            return Err(CoreError::format(
+                dir,
+                "ff.npz",
+                "missing feed-forward outputs (ff.npz or ff_outputs.bin)",
+            ));
         }
         let f = read_ff_outputs_bin(&bin)?;
         return Ok((f.to_feed_forward(), Some(f.images_ff.clone()), f.dims));
     }
     let z = Npz::open(&npz)?;
     let dims = match z.get("points")?.shape.as_slice() {
-        [n, h, w, 3] if *n > 0 && *h > 0 && *w > 0 => Dims { n: *n, h: *h, w: *w },
-        s => return Err(z.err("points", format!("wrong shape {s:?}, expected [N, h, w, 3]"))),
+        [n, h, w, 3] if *n > 0 && *h > 0 && *w > 0 => Dims {
+            n: *n,
+            h: *h,
+            w: *w,
+        },
+        s => {
+            return Err(z.err(
+                "points",
+                format!("wrong shape {s:?}, expected [N, h, w, 3]"),
+            ));
+        }
     };
     let (n, h, w) = (dims.n, dims.h, dims.w);
     let points = z.f32_exact("points", &[n, h, w, 3])?;
     let conf = z.f32_exact("conf", &[n, h, w])?;
-    let cameras = Cameras { cam_from_world: z.extrinsics("cam_from_world", n)?, intrinsics: z.intrinsics("K", n)? };
+    let cameras = Cameras {
+        cam_from_world: z.extrinsics("cam_from_world", n)?,
+        intrinsics: z.intrinsics("K", n)?,
+    };
     // Accepted: the image centre ((w-1)/2, (h-1)/2) and VGGT's native (w/2, h/2) [project: the
     // spec's §5.2 lists only the centre, but the BA keeps the given principal point, sfm.md §7.1,
     // and VGGT's output is what real users feed].
     let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
     let (vx, vy) = (w as f64 / 2.0, h as f64 / 2.0);
     for (i, k) in cameras.intrinsics.iter().enumerate() {
-        let near = |x: f64, y: f64| (k[(0, 2)] - x).abs() <= PRINCIPAL_POINT_TOL && (k[(1, 2)] - y).abs() <= PRINCIPAL_POINT_TOL;
+        let near = |x: f64, y: f64| {
+            (k[(0, 2)] - x).abs() <= PRINCIPAL_POINT_TOL
+                && (k[(1, 2)] - y).abs() <= PRINCIPAL_POINT_TOL
+        };
         if !near(cx, cy) && !near(vx, vy) {
             return Err(z.err(
                 "K",
@@ -100,8 +134,20 @@ fn read_ff_part(dir: &Path) -> Result<(FeedForward, Option<Vec<f32>>, Dims)> {
             ));
         }
     }
-    let images = if z.has("images") { Some(z.images("images", dims)?) } else { None };
-    Ok((FeedForward { points, conf, cameras }, images, dims))
+    let images = if z.has("images") {
+        Some(z.images("images", dims)?)
+    } else {
+        None
+    };
+    Ok((
+        FeedForward {
+            points,
+            conf,
+            cameras,
+        },
+        images,
+        dims,
+    ))
 }
 
 fn read_sfm_part(dir: &Path, dims: Dims) -> Result<Option<SfmResult>> {
@@ -119,12 +165,20 @@ fn read_sfm_part(dir: &Path, dims: Dims) -> Result<Option<SfmResult>> {
     let (n, h, w) = (dims.n, dims.h, dims.w);
     let pshape = z.get("points")?.shape.clone();
     if pshape != [n, h, w, 3] {
-        return Err(z.err("points", format!("shape {pshape:?} differs from the feed-forward [N, h, w, 3] = [{n}, {h}, {w}, 3]")));
+        return Err(z.err(
+            "points",
+            format!(
+                "shape {pshape:?} differs from the feed-forward [N, h, w, 3] = [{n}, {h}, {w}, 3]"
+            ),
+        ));
     }
     Ok(Some(SfmResult {
         points: z.f32_exact("points", &[n, h, w, 3])?,
         mask: z.bools("mask", &[n, h, w])?,
-        cameras: Cameras { cam_from_world: z.extrinsics("cam_from_world", n)?, intrinsics: z.intrinsics("K", n)? },
+        cameras: Cameras {
+            cam_from_world: z.extrinsics("cam_from_world", n)?,
+            intrinsics: z.intrinsics("K", n)?,
+        },
         camera_success: z.scalar_bool("camera_success")?,
         points_success: z.scalar_bool("points_success")?,
     }))
@@ -144,7 +198,16 @@ fn read_matches_dir(dir: &Path, dims: Dims) -> Result<Vec<crate::MatchSet>> {
     let mut out = Vec::new();
     for p in files {
         let m = read_matches(&p)?;
-        check_dims(&p, "pred_matches", Dims { n: m.n, h: m.h, w: m.w }, dims)?;
+        check_dims(
+            &p,
+            "pred_matches",
+            Dims {
+                n: m.n,
+                h: m.h,
+                w: m.w,
+            },
+            dims,
+        )?;
         out.push(m.set);
     }
     Ok(out)
@@ -156,19 +219,37 @@ fn read_image_dir(dir: &Path, dims: Dims) -> Result<Vec<f32>> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(&idir)
         .map_err(|e| CoreError::io(&idir, e))?
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|e| IMAGE_EXTS.contains(&e.to_string_lossy().to_ascii_lowercase().as_str())))
+        .filter(|p| {
+            p.extension().is_some_and(|e| {
+                IMAGE_EXTS.contains(&e.to_string_lossy().to_ascii_lowercase().as_str())
+            })
+        })
         .collect();
     files.sort();
     if files.len() != dims.n {
-        return Err(CoreError::format(&idir, "", format!("{} images, the feed-forward outputs have N={}", files.len(), dims.n)));
+        return Err(CoreError::format(
+            &idir,
+            "",
+            format!(
+                "{} images, the feed-forward outputs have N={}",
+                files.len(),
+                dims.n
+            ),
+        ));
     }
     let mut out = Vec::with_capacity(3 * dims.pixels());
     for p in files {
         let bytes = std::fs::read(&p).map_err(|e| CoreError::io(&p, e))?;
-        let img = image::load_from_memory(&bytes).map_err(|e| CoreError::format(&p, "", format!("cannot decode image: {e}")))?.to_rgb8();
+        let img = image::load_from_memory(&bytes)
+            .map_err(|e| CoreError::format(&p, "", format!("cannot decode image: {e}")))?
+            .to_rgb8();
         let (w, h) = (img.width() as usize, img.height() as usize);
         let f: Vec<f32> = img.as_raw().iter().map(|&b| f32::from(b) / 255.0).collect();
-        out.extend(if (h, w) == (dims.h, dims.w) { f } else { resize_bilinear(&f, h, w, 3, dims.h, dims.w) });
+        out.extend(if (h, w) == (dims.h, dims.w) {
+            f
+        } else {
+            resize_bilinear(&f, h, w, 3, dims.h, dims.w, BilinearRounding::Separable)?
+        });
     }
     Ok(out)
 }
@@ -181,7 +262,10 @@ struct Npz {
 
 impl Npz {
     fn open(path: &Path) -> Result<Self> {
-        Ok(Self { path: path.to_path_buf(), arrays: read_npz(path)? })
+        Ok(Self {
+            path: path.to_path_buf(),
+            arrays: read_npz(path)?,
+        })
     }
     fn err(&self, key: &str, m: impl Into<String>) -> CoreError {
         CoreError::format(&self.path, key, m)
@@ -190,12 +274,17 @@ impl Npz {
         self.arrays.contains_key(key)
     }
     fn get(&self, key: &str) -> Result<&NpyArray> {
-        self.arrays.get(key).ok_or_else(|| self.err(key, "missing array"))
+        self.arrays
+            .get(key)
+            .ok_or_else(|| self.err(key, "missing array"))
     }
     fn shaped(&self, key: &str, shape: &[usize]) -> Result<&NpyArray> {
         let a = self.get(key)?;
         if a.shape != shape {
-            return Err(self.err(key, format!("wrong shape {:?}, expected {shape:?}", a.shape)));
+            return Err(self.err(
+                key,
+                format!("wrong shape {:?}, expected {shape:?}", a.shape),
+            ));
         }
         Ok(a)
     }
@@ -211,7 +300,12 @@ impl Npz {
     /// `<f4` or `<f8` as f64, finite.
     fn floats(&self, key: &str, shape: &[usize]) -> Result<Vec<f64>> {
         let a = self.shaped(key, shape)?;
-        let v = a.to_f64().ok_or_else(|| self.err(key, format!("wrong dtype {}, expected <f4 or <f8", a.data.descr())))?;
+        let v = a.to_f64().ok_or_else(|| {
+            self.err(
+                key,
+                format!("wrong dtype {}, expected <f4 or <f8", a.data.descr()),
+            )
+        })?;
         crate::io::st::check_finite_f64(&self.path, key, &v)?;
         Ok(v)
     }
@@ -224,7 +318,10 @@ impl Npz {
         let v = self.floats(key, &[n, 4, 4])?;
         let mut out = Vec::with_capacity(n);
         for (i, m) in v.chunks_exact(16).enumerate() {
-            if [m[12], m[13], m[14], m[15] - 1.0].iter().any(|x| x.abs() > 1e-6) {
+            if [m[12], m[13], m[14], m[15] - 1.0]
+                .iter()
+                .any(|x| x.abs() > 1e-6)
+            {
                 return Err(self.err(key, format!("view {i}: last row is not 0 0 0 1")));
             }
             out.push(Matrix3x4::from_row_slice(&m[..12]));
@@ -232,7 +329,11 @@ impl Npz {
         Ok(out)
     }
     fn intrinsics(&self, key: &str, n: usize) -> Result<Vec<Matrix3<f64>>> {
-        Ok(self.floats(key, &[n, 3, 3])?.chunks_exact(9).map(Matrix3::from_row_slice).collect())
+        Ok(self
+            .floats(key, &[n, 3, 3])?
+            .chunks_exact(9)
+            .map(Matrix3::from_row_slice)
+            .collect())
     }
     fn bools(&self, key: &str, shape: &[usize]) -> Result<Vec<bool>> {
         let a = self.shaped(key, shape)?;
@@ -245,7 +346,14 @@ impl Npz {
         let a = self.get(key)?;
         match (&a.data, a.shape.iter().product::<usize>()) {
             (NpyData::Bool(v), 1) => v.first().copied().ok_or_else(|| self.err(key, "empty")),
-            _ => Err(self.err(key, format!("expected a bool scalar, found {} {:?}", a.data.descr(), a.shape))),
+            _ => Err(self.err(
+                key,
+                format!(
+                    "expected a bool scalar, found {} {:?}",
+                    a.data.descr(),
+                    a.shape
+                ),
+            )),
         }
     }
     /// `[N,h,w,3]` u8 (÷255) or f32 in [0, 1].
@@ -255,20 +363,37 @@ impl Npz {
             NpyData::U8(v) => Ok(v.iter().map(|&b| f32::from(b) / 255.0).collect()),
             NpyData::F32(v) => {
                 if let Some(i) = v.iter().position(|x| !(0.0..=1.0).contains(x)) {
-                    return Err(self.err(key, format!("value {} at flat index {i} outside [0, 1]", v[i])));
+                    return Err(self.err(
+                        key,
+                        format!("value {} at flat index {i} outside [0, 1]", v[i]),
+                    ));
                 }
                 Ok(v.clone())
             }
-            other => Err(self.err(key, format!("wrong dtype {}, expected |u1 or <f4", other.descr()))),
+            other => Err(self.err(
+                key,
+                format!("wrong dtype {}, expected |u1 or <f4", other.descr()),
+            )),
         }
     }
 }
 
 fn cams_arrays(c: &Cameras) -> Result<(NpyArray, NpyArray)> {
     let n = c.len();
-    let e: Vec<f64> = c.cam_from_world.iter().flat_map(|m| m.transpose().iter().copied().collect::<Vec<_>>()).collect();
-    let k: Vec<f64> = c.intrinsics.iter().flat_map(|m| m.transpose().iter().copied().collect::<Vec<_>>()).collect();
-    Ok((NpyArray::new(vec![n, 3, 4], NpyData::F64(e))?, NpyArray::new(vec![n, 3, 3], NpyData::F64(k))?))
+    let e: Vec<f64> = c
+        .cam_from_world
+        .iter()
+        .flat_map(|m| m.transpose().iter().copied().collect::<Vec<_>>())
+        .collect();
+    let k: Vec<f64> = c
+        .intrinsics
+        .iter()
+        .flat_map(|m| m.transpose().iter().copied().collect::<Vec<_>>())
+        .collect();
+    Ok((
+        NpyArray::new(vec![n, 3, 4], NpyData::F64(e))?,
+        NpyArray::new(vec![n, 3, 3], NpyData::F64(k))?,
+    ))
 }
 
 /// Writes `scene` as a §5.1 folder: `ff.npz` (f64 cameras, f32 `images` so the round trip is
@@ -278,30 +403,64 @@ pub fn write_infer_folder(dir: &Path, scene: &Scene) -> Result<()> {
     scene.validate()?;
     let d = scene.dims;
     let (n, h, w) = (d.n, d.h, d.w);
-    let ff = scene.ff.as_ref().ok_or_else(|| CoreError::Invalid("a §5.1 folder needs feed-forward outputs".into()))?;
+    let ff = scene
+        .ff
+        .as_ref()
+        .ok_or_else(|| CoreError::Invalid("a §5.1 folder needs feed-forward outputs".into()))?;
     let (e, k) = cams_arrays(&ff.cameras)?;
     let points = NpyArray::new(vec![n, h, w, 3], NpyData::F32(ff.points.clone()))?;
     let conf = NpyArray::new(vec![n, h, w], NpyData::F32(ff.conf.clone()))?;
     let images = NpyArray::new(vec![n, h, w, 3], NpyData::F32(scene.images.clone()))?;
-    crate::io::npy::write_npz(&dir.join("ff.npz"), &[("points", &points), ("conf", &conf), ("cam_from_world", &e), ("K", &k), ("images", &images)], false)?;
+    crate::io::npy::write_npz(
+        &dir.join("ff.npz"),
+        &[
+            ("points", &points),
+            ("conf", &conf),
+            ("cam_from_world", &e),
+            ("K", &k),
+            ("images", &images),
+        ],
+        false,
+    )?;
     if let Some(s) = &scene.sfm {
         let (e, k) = cams_arrays(&s.cameras)?;
         let points = NpyArray::new(vec![n, h, w, 3], NpyData::F32(s.points.clone()))?;
         let mask = NpyArray::new(vec![n, h, w], NpyData::Bool(s.mask.clone()))?;
         let cs = NpyArray::new(vec![], NpyData::Bool(vec![s.camera_success]))?;
         let ps = NpyArray::new(vec![], NpyData::Bool(vec![s.points_success]))?;
-        let arrays = [("cam_from_world", &e), ("K", &k), ("points", &points), ("mask", &mask), ("camera_success", &cs), ("points_success", &ps)];
+        let arrays = [
+            ("cam_from_world", &e),
+            ("K", &k),
+            ("points", &points),
+            ("mask", &mask),
+            ("camera_success", &cs),
+            ("points_success", &ps),
+        ];
         crate::io::npy::write_npz(&dir.join("sfm.npz"), &arrays, false)?;
     }
     for m in &scene.matches {
         crate::io::scene_dir::check_matcher_name(dir, &m.matcher)?;
-        crate::io::matches::write_matches(&dir.join("matches").join(format!("{}.safetensors", m.matcher)), m, n, h, w)?;
+        crate::io::matches::write_matches(
+            &dir.join("matches")
+                .join(format!("{}.safetensors", m.matcher)),
+            m,
+            n,
+            h,
+            w,
+        )?;
     }
-    for (i, px) in scene.images.chunks_exact((3 * d.hw()).max(1)).enumerate().take(n) {
-        let bytes: Vec<u8> = px.iter().map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+    for (i, px) in scene
+        .images
+        .chunks_exact((3 * d.hw()).max(1))
+        .enumerate()
+        .take(n)
+    {
+        let bytes: Vec<u8> = px
+            .iter()
+            .map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+            .collect();
         let path = dir.join("images").join(format!("{i:06}.png"));
-        let png = crate::io::scene_dir::encode_png(&path, w, h, bytes)?;
-        crate::io::atomic::write_bytes_atomic(&path, &png)?;
+        crate::io::png::write_rgb8(&path, w, h, &bytes)?;
     }
     Ok(())
 }

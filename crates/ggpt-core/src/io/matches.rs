@@ -41,11 +41,21 @@ pub fn write_matches(path: &Path, set: &MatchSet, n: usize, h: usize, w: usize) 
 }
 
 /// Serialises `set` to safetensors bytes (see [`write_matches`]).
-pub fn encode_matches(path: &Path, set: &MatchSet, n: usize, h: usize, w: usize) -> Result<Vec<u8>> {
+pub fn encode_matches(
+    path: &Path,
+    set: &MatchSet,
+    n: usize,
+    h: usize,
+    w: usize,
+) -> Result<Vec<u8>> {
     let hw = h * w;
     let check = |key: &str, len: usize, want: usize| -> Result<()> {
         if len != want {
-            return Err(CoreError::format(path, key, format!("{len} values, expected {want} for N={n} h={h} w={w}")));
+            return Err(CoreError::format(
+                path,
+                key,
+                format!("{len} values, expected {want} for N={n} h={h} w={w}"),
+            ));
         }
         Ok(())
     };
@@ -85,8 +95,13 @@ pub fn read_matches(path: &Path) -> Result<MatchFile> {
 pub fn read_matches_raw(path: &Path) -> Result<MatchFile> {
     let f = StFile::open(path)?;
     let meta_usize = |key: &str| -> Result<usize> {
-        let s = f.metadata().get(key).ok_or_else(|| f.err(key, "missing __metadata__ entry"))?;
-        s.trim().parse::<usize>().map_err(|_| f.err(key, format!("metadata '{s}' is not a non-negative integer")))
+        let s = f
+            .metadata()
+            .get(key)
+            .ok_or_else(|| f.err(key, "missing __metadata__ entry"))?;
+        s.trim()
+            .parse::<usize>()
+            .map_err(|_| f.err(key, format!("metadata '{s}' is not a non-negative integer")))
     };
     let h = meta_usize("height")?;
     let w = meta_usize("width")?;
@@ -94,7 +109,12 @@ pub fn read_matches_raw(path: &Path) -> Result<MatchFile> {
     let shape = f.shape("pred_matches")?.to_vec();
     let n = match shape.as_slice() {
         [a, b, k, 2] if a == b && *k == hw => *a,
-        _ => return Err(f.err("pred_matches", format!("shape {shape:?} is not [N, N, h*w={hw}, 2] (h={h}, w={w} from metadata)"))),
+        _ => {
+            return Err(f.err(
+                "pred_matches",
+                format!("shape {shape:?} is not [N, N, h*w={hw}, 2] (h={h}, w={w} from metadata)"),
+            ));
+        }
     };
     let mut pred_matches = f.f32("pred_matches", &[n, n, hw, 2])?;
     let pred_scores = f.f32_finite("pred_scores", &[n, n, hw])?;
@@ -103,7 +123,11 @@ pub fn read_matches_raw(path: &Path) -> Result<MatchFile> {
     if let Some(r) = &rank_scores {
         check_finite_f32(f.path(), "rank_scores", r)?;
     }
-    let coords = f.metadata().get("coords").map(String::as_str).unwrap_or(COORDS_FF_PIXEL_CENTER);
+    let coords = f
+        .metadata()
+        .get("coords")
+        .map(String::as_str)
+        .unwrap_or(COORDS_FF_PIXEL_CENTER);
     match coords {
         COORDS_FF_PIXEL_CENTER => {}
         COORDS_NORMALIZED_EDGE => normalized_edge_to_pixels(&mut pred_matches, h, w),
@@ -111,14 +135,27 @@ pub fn read_matches_raw(path: &Path) -> Result<MatchFile> {
     }
     let matcher = match f.metadata().get("matcher") {
         Some(m) => m.clone(),
-        None => path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default(),
+        None => path
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default(),
     };
-    let set = MatchSet { matcher, pred_matches, pred_scores, pred_cycle_error, rank_scores };
+    let set = MatchSet {
+        matcher,
+        pred_matches,
+        pred_scores,
+        pred_cycle_error,
+        rank_scores,
+    };
     Ok(MatchFile { set, n, h, w })
 }
 
 fn optional(f: &StFile, key: &str, shape: &[usize]) -> Result<Option<Vec<f32>>> {
-    if f.has(key) { Ok(Some(f.f32(key, shape)?)) } else { Ok(None) }
+    if f.has(key) {
+        Ok(Some(f.f32(key, shape)?))
+    } else {
+        Ok(None)
+    }
 }
 
 /// RoMa normalised coordinates (`-1`, `+1` = image edges) to ff pixels, in place:
@@ -137,14 +174,23 @@ pub fn apply_diagonal(m: &mut MatchFile) {
     for s in 0..n {
         let base = (s * n + s) * hw;
         for k in 0..hw {
-            if let Some(p) = m.set.pred_matches.get_mut(2 * (base + k)..2 * (base + k) + 2) {
+            if let Some(p) = m
+                .set
+                .pred_matches
+                .get_mut(2 * (base + k)..2 * (base + k) + 2)
+            {
                 p[0] = (k % w) as f32;
                 p[1] = (k / w) as f32;
             }
             if let Some(v) = m.set.pred_scores.get_mut(base + k) {
                 *v = 1.0;
             }
-            if let Some(v) = m.set.pred_cycle_error.as_mut().and_then(|c| c.get_mut(base + k)) {
+            if let Some(v) = m
+                .set
+                .pred_cycle_error
+                .as_mut()
+                .and_then(|c| c.get_mut(base + k))
+            {
                 *v = 0.0;
             }
         }

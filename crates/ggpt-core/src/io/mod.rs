@@ -2,13 +2,14 @@
 //! naming the file, the key and the problem; every writer is atomic (temp file + rename).
 
 pub mod atomic;
-pub mod matches;
-pub mod scene_dir;
-pub mod st;
-pub mod official;
-pub mod npy;
+pub mod colmap;
 pub mod ggpt_eval;
 pub mod infer_folder;
+pub mod matches;
+pub mod npy;
+pub mod official;
 pub mod ply;
-pub mod colmap;
+pub mod png;
+pub mod scene_dir;
+pub mod st;
 pub mod torch_zip;

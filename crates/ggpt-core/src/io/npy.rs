@@ -85,7 +85,10 @@ impl NpyArray {
     pub fn new(shape: Vec<usize>, data: NpyData) -> Result<Self> {
         let want: usize = shape.iter().product();
         if data.len() != want {
-            return Err(CoreError::Invalid(format!("npy array: {} values for shape {shape:?} ({want} expected)", data.len())));
+            return Err(CoreError::Invalid(format!(
+                "npy array: {} values for shape {shape:?} ({want} expected)",
+                data.len()
+            )));
         }
         Ok(Self { shape, data })
     }
@@ -131,28 +134,56 @@ pub fn parse_npy(path: &Path, key: &str, bytes: &[u8]) -> Result<NpyArray> {
     let (hlen, hstart) = match major {
         1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
         2 | 3 => {
-            let b = bytes.get(8..12).ok_or_else(|| err("truncated header length".into()))?;
+            let b = bytes
+                .get(8..12)
+                .ok_or_else(|| err("truncated header length".into()))?;
             (u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize, 12)
         }
         _ => return Err(err(format!("unsupported .npy version {major}.{minor}"))),
     };
-    let header = bytes.get(hstart..hstart + hlen).ok_or_else(|| err("truncated header".into()))?;
+    let header = bytes
+        .get(hstart..hstart + hlen)
+        .ok_or_else(|| err("truncated header".into()))?;
     let header = std::str::from_utf8(header).map_err(|_| err("header is not text".into()))?;
     if major < 3 && !header.is_ascii() {
         return Err(err("header is not ASCII".into()));
     }
-    let h = parse_header(header).map_err(|m| err(format!("bad header {:?}: {m}", header.trim_end())))?;
+    let h = parse_header(header)
+        .map_err(|m| err(format!("bad header {:?}: {m}", header.trim_end())))?;
     let payload = bytes.get(hstart + hlen..).unwrap_or_default();
-    let numel = h.shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).ok_or_else(|| err("shape overflows".into()))?;
-    let item = item_size(&h.descr).ok_or_else(|| err(format!("unsupported dtype descriptor '{}'", h.descr)))?;
-    let want = numel.checked_mul(item).ok_or_else(|| err("shape overflows".into()))?;
+    let numel = h
+        .shape
+        .iter()
+        .try_fold(1usize, |a, &d| a.checked_mul(d))
+        .ok_or_else(|| err("shape overflows".into()))?;
+    let item = item_size(&h.descr)
+        .ok_or_else(|| err(format!("unsupported dtype descriptor '{}'", h.descr)))?;
+    let want = numel
+        .checked_mul(item)
+        .ok_or_else(|| err("shape overflows".into()))?;
     if payload.len() != want {
-        let what = if payload.len() < want { "truncated" } else { "trailing bytes" };
-        return Err(err(format!("{what}: data has {} bytes, shape {:?} x {} needs {want}", payload.len(), h.shape, h.descr)));
+        let what = if payload.len() < want {
+            "truncated"
+        } else {
+            "trailing bytes"
+        };
+        return Err(err(format!(
+            "{what}: data has {} bytes, shape {:?} x {} needs {want}",
+            payload.len(),
+            h.shape,
+            h.descr
+        )));
     }
     let data = decode(&h.descr, payload).map_err(&err)?;
-    let data = if h.fortran_order { fortran_to_c(&h.shape, data) } else { data };
-    Ok(NpyArray { shape: h.shape, data })
+    let data = if h.fortran_order {
+        fortran_to_c(&h.shape, data)
+    } else {
+        data
+    };
+    Ok(NpyArray {
+        shape: h.shape,
+        data,
+    })
 }
 
 /// Parsed `.npy` header dict.
@@ -164,14 +195,22 @@ struct Header {
 
 /// Parses the Python dict literal `{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3), }`.
 fn parse_header(s: &str) -> std::result::Result<Header, String> {
-    let body = s.trim().strip_prefix('{').and_then(|b| b.trim_end().strip_suffix('}')).ok_or("not a dict literal")?;
+    let body = s
+        .trim()
+        .strip_prefix('{')
+        .and_then(|b| b.trim_end().strip_suffix('}'))
+        .ok_or("not a dict literal")?;
     let mut descr = None;
     let mut fortran = None;
     let mut shape = None;
     let mut rest = body.trim_start();
     while !rest.is_empty() {
         let (key, r) = take_string(rest)?;
-        let r = r.trim_start().strip_prefix(':').ok_or("expected ':'")?.trim_start();
+        let r = r
+            .trim_start()
+            .strip_prefix(':')
+            .ok_or("expected ':'")?
+            .trim_start();
         let r = match key.as_str() {
             "descr" => {
                 let (v, r) = take_string(r)?;
@@ -179,7 +218,15 @@ fn parse_header(s: &str) -> std::result::Result<Header, String> {
                 r
             }
             "fortran_order" => {
-                let (v, r) = if let Some(r) = r.strip_prefix("True") { (true, r) } else { (false, r.strip_prefix("False").ok_or("fortran_order must be True or False")?) };
+                let (v, r) = if let Some(r) = r.strip_prefix("True") {
+                    (true, r)
+                } else {
+                    (
+                        false,
+                        r.strip_prefix("False")
+                            .ok_or("fortran_order must be True or False")?,
+                    )
+                };
                 fortran = Some(v);
                 r
             }
@@ -190,7 +237,11 @@ fn parse_header(s: &str) -> std::result::Result<Header, String> {
                     .split(',')
                     .map(str::trim)
                     .filter(|t| !t.is_empty())
-                    .map(|t| t.trim_end_matches('L').parse::<usize>().map_err(|_| format!("bad dimension '{t}'")))
+                    .map(|t| {
+                        t.trim_end_matches('L')
+                            .parse::<usize>()
+                            .map_err(|_| format!("bad dimension '{t}'"))
+                    })
                     .collect::<std::result::Result<Vec<_>, _>>()?;
                 shape = Some(dims);
                 &r[end + 1..]
@@ -211,7 +262,10 @@ fn parse_header(s: &str) -> std::result::Result<Header, String> {
 fn take_string(s: &str) -> std::result::Result<(String, &str), String> {
     let q = s.chars().next().ok_or("unexpected end of header")?;
     if q != '\'' && q != '"' {
-        return Err(format!("expected a quoted string at '{}'", s.chars().take(12).collect::<String>()));
+        return Err(format!(
+            "expected a quoted string at '{}'",
+            s.chars().take(12).collect::<String>()
+        ));
     }
     let inner = &s[1..];
     let end = inner.find(q).ok_or("unterminated string")?;
@@ -240,24 +294,46 @@ fn item_size(descr: &str) -> Option<usize> {
 fn decode(descr: &str, b: &[u8]) -> std::result::Result<NpyData, String> {
     let a4 = |c: &[u8]| [c[0], c[1], c[2], c[3]];
     let a8 = |c: &[u8]| [c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]];
-    Ok(match canonical(descr).ok_or_else(|| format!("unsupported dtype descriptor '{descr}'"))? {
-        "f4" => NpyData::F32(b.chunks_exact(4).map(|c| f32::from_le_bytes(a4(c))).collect()),
-        "f8" => NpyData::F64(b.chunks_exact(8).map(|c| f64::from_le_bytes(a8(c))).collect()),
-        "i4" => NpyData::I32(b.chunks_exact(4).map(|c| i32::from_le_bytes(a4(c))).collect()),
-        "i8" => NpyData::I64(b.chunks_exact(8).map(|c| i64::from_le_bytes(a8(c))).collect()),
-        "u2" => NpyData::U16(b.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]])).collect()),
-        "u1" => NpyData::U8(b.to_vec()),
-        _ => NpyData::Bool(
-            b.iter()
-                .enumerate()
-                .map(|(i, &x)| match x {
-                    0 => Ok(false),
-                    1 => Ok(true),
-                    _ => Err(format!("bool byte {x} at flat index {i} (must be 0 or 1)")),
-                })
-                .collect::<std::result::Result<_, _>>()?,
-        ),
-    })
+    Ok(
+        match canonical(descr).ok_or_else(|| format!("unsupported dtype descriptor '{descr}'"))? {
+            "f4" => NpyData::F32(
+                b.chunks_exact(4)
+                    .map(|c| f32::from_le_bytes(a4(c)))
+                    .collect(),
+            ),
+            "f8" => NpyData::F64(
+                b.chunks_exact(8)
+                    .map(|c| f64::from_le_bytes(a8(c)))
+                    .collect(),
+            ),
+            "i4" => NpyData::I32(
+                b.chunks_exact(4)
+                    .map(|c| i32::from_le_bytes(a4(c)))
+                    .collect(),
+            ),
+            "i8" => NpyData::I64(
+                b.chunks_exact(8)
+                    .map(|c| i64::from_le_bytes(a8(c)))
+                    .collect(),
+            ),
+            "u2" => NpyData::U16(
+                b.chunks_exact(2)
+                    .map(|c| u16::from_le_bytes([c[0], c[1]]))
+                    .collect(),
+            ),
+            "u1" => NpyData::U8(b.to_vec()),
+            _ => NpyData::Bool(
+                b.iter()
+                    .enumerate()
+                    .map(|(i, &x)| match x {
+                        0 => Ok(false),
+                        1 => Ok(true),
+                        _ => Err(format!("bool byte {x} at flat index {i} (must be 0 or 1)")),
+                    })
+                    .collect::<std::result::Result<_, _>>()?,
+            ),
+        },
+    )
 }
 
 /// Reorders column-major values into row-major order.
@@ -304,13 +380,27 @@ fn fortran_to_c(shape: &[usize], data: NpyData) -> NpyData {
 pub fn encode_npy(a: &NpyArray) -> Result<Vec<u8>> {
     let numel: usize = a.shape.iter().product();
     if a.data.len() != numel {
-        return Err(CoreError::Invalid(format!("npy array: {} values for shape {:?}", a.data.len(), a.shape)));
+        return Err(CoreError::Invalid(format!(
+            "npy array: {} values for shape {:?}",
+            a.data.len(),
+            a.shape
+        )));
     }
     let shape = match a.shape.len() {
         1 => format!("({},)", a.shape[0]),
-        _ => format!("({})", a.shape.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", ")),
+        _ => format!(
+            "({})",
+            a.shape
+                .iter()
+                .map(|d| d.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
     };
-    let dict = format!("{{'descr': '{}', 'fortran_order': False, 'shape': {shape}, }}", a.data.descr());
+    let dict = format!(
+        "{{'descr': '{}', 'fortran_order': False, 'shape': {shape}, }}",
+        a.data.descr()
+    );
     let v1 = dict.len() + 1 + 10 <= u16::MAX as usize;
     let pre = if v1 { 10 } else { 12 };
     let total = (pre + dict.len() + 1).div_ceil(HEADER_ALIGN) * HEADER_ALIGN;
@@ -328,11 +418,21 @@ pub fn encode_npy(a: &NpyArray) -> Result<Vec<u8>> {
     out.resize(total - 1, b' ');
     out.push(b'\n');
     match &a.data {
-        NpyData::F32(v) => v.iter().for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
-        NpyData::F64(v) => v.iter().for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
-        NpyData::I32(v) => v.iter().for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
-        NpyData::I64(v) => v.iter().for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
-        NpyData::U16(v) => v.iter().for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
+        NpyData::F32(v) => v
+            .iter()
+            .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
+        NpyData::F64(v) => v
+            .iter()
+            .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
+        NpyData::I32(v) => v
+            .iter()
+            .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
+        NpyData::I64(v) => v
+            .iter()
+            .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
+        NpyData::U16(v) => v
+            .iter()
+            .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
         NpyData::U8(v) => out.extend_from_slice(v),
         NpyData::Bool(v) => out.extend(v.iter().map(|&b| u8::from(b))),
     }
@@ -348,26 +448,40 @@ const MAX_NPZ_PREALLOC: u64 = 64 << 20;
 /// Members not ending in `.npy` are ignored.
 pub fn read_npz(path: &Path) -> Result<BTreeMap<String, NpyArray>> {
     let bytes = std::fs::read(path).map_err(|e| CoreError::io(path, e))?;
-    let zerr = |key: &str, e: zip::result::ZipError| CoreError::format(path, key, format!("corrupt or truncated npz archive: {e}"));
+    let zerr = |key: &str, e: zip::result::ZipError| {
+        CoreError::format(path, key, format!("corrupt or truncated npz archive: {e}"))
+    };
     let mut zip = zip::ZipArchive::new(Cursor::new(bytes)).map_err(|e| zerr("", e))?;
     let mut out = BTreeMap::new();
     for i in 0..zip.len() {
         let mut f = zip.by_index(i).map_err(|e| zerr("", e))?;
         let name = f.name().map_err(|e| zerr("", e))?.into_owned();
-        let Some(key) = name.strip_suffix(".npy") else { continue };
+        let Some(key) = name.strip_suffix(".npy") else {
+            continue;
+        };
         let key = key.to_string();
         // The declared size is only a hint: it is capped by what the compressed bytes can
         // expand to, and reading stops one byte past it (a member larger than declared is an
         // error, not an unbounded buffer).
         let declared = f.size();
-        let hint = declared.min(f.compressed_size().saturating_mul(MAX_DEFLATE_RATIO).saturating_add(1024)).min(MAX_NPZ_PREALLOC);
+        let hint = declared
+            .min(
+                f.compressed_size()
+                    .saturating_mul(MAX_DEFLATE_RATIO)
+                    .saturating_add(1024),
+            )
+            .min(MAX_NPZ_PREALLOC);
         let mut buf = Vec::with_capacity(usize::try_from(hint).unwrap_or(0));
         (&mut f)
             .take(declared.saturating_add(1))
             .read_to_end(&mut buf)
             .map_err(|e| CoreError::format(path, &key, format!("cannot decompress member: {e}")))?;
         if buf.len() as u64 > declared {
-            return Err(CoreError::format(path, &key, format!("member is larger than its declared {declared} bytes")));
+            return Err(CoreError::format(
+                path,
+                &key,
+                format!("member is larger than its declared {declared} bytes"),
+            ));
         }
         let arr = parse_npy(path, &key, &buf)?;
         if out.insert(key.clone(), arr).is_some() {
@@ -380,18 +494,27 @@ pub fn read_npz(path: &Path) -> Result<BTreeMap<String, NpyArray>> {
 /// Writes a `.npz` archive of `<key>.npy` members (deflated unless `store` is true; zip64 when
 /// a member is ≥ 4 GiB). Atomic.
 pub fn write_npz(path: &Path, arrays: &[(&str, &NpyArray)], store: bool) -> Result<()> {
-    let zerr = |key: &str, e: String| CoreError::format(path, key, format!("cannot write npz: {e}"));
-    let method = if store { zip::CompressionMethod::Stored } else { zip::CompressionMethod::Deflated };
+    let zerr =
+        |key: &str, e: String| CoreError::format(path, key, format!("cannot write npz: {e}"));
+    let method = if store {
+        zip::CompressionMethod::Stored
+    } else {
+        zip::CompressionMethod::Deflated
+    };
     let mut zw = zip::ZipWriter::new(Cursor::new(Vec::new()));
     for (key, a) in arrays {
         let npy = encode_npy(a).map_err(|e| zerr(key, e.to_string()))?;
         let opts = zip::write::SimpleFileOptions::default()
             .compression_method(method)
             .large_file(npy.len() as u64 >= u32::MAX as u64);
-        zw.start_file(format!("{key}.npy"), opts).map_err(|e| zerr(key, e.to_string()))?;
+        zw.start_file(format!("{key}.npy"), opts)
+            .map_err(|e| zerr(key, e.to_string()))?;
         zw.write_all(&npy).map_err(|e| zerr(key, e.to_string()))?;
     }
-    let bytes = zw.finish().map_err(|e| zerr("", e.to_string()))?.into_inner();
+    let bytes = zw
+        .finish()
+        .map_err(|e| zerr("", e.to_string()))?
+        .into_inner();
     write_bytes_atomic(path, &bytes)
 }
 
@@ -401,8 +524,12 @@ mod tests {
 
     #[test]
     fn header_parser_accepts_numpy_variants() {
-        let h = parse_header("{'descr': '<f8', 'fortran_order': True, 'shape': (3,), }   \n").unwrap();
-        assert_eq!((h.descr.as_str(), h.fortran_order, h.shape), ("<f8", true, vec![3]));
+        let h =
+            parse_header("{'descr': '<f8', 'fortran_order': True, 'shape': (3,), }   \n").unwrap();
+        assert_eq!(
+            (h.descr.as_str(), h.fortran_order, h.shape),
+            ("<f8", true, vec![3])
+        );
         let h = parse_header("{\"descr\":\"|b1\",\"fortran_order\":False,\"shape\":()}").unwrap();
         assert!(h.shape.is_empty());
         assert!(parse_header("{'descr': '<f4', 'shape': (1,), }").is_err());

@@ -83,12 +83,29 @@ struct Pickle<'a> {
 impl<'a> Pickle<'a> {
     fn open(path: &'a Path, need_tree: bool) -> Result<Self> {
         if !path.is_file() {
-            return Err(CoreError::io(path, std::io::Error::new(std::io::ErrorKind::NotFound, "file not found")));
+            return Err(CoreError::io(
+                path,
+                std::io::Error::new(std::io::ErrorKind::NotFound, "file not found"),
+            ));
         }
-        let bad = |e: pytorch_reader::PytorchError| CoreError::format(path, "", format!("cannot read torch pickle (corrupt or truncated?): {e}"));
+        let bad = |e: pytorch_reader::PytorchError| {
+            CoreError::format(
+                path,
+                "",
+                format!("cannot read torch pickle (corrupt or truncated?): {e}"),
+            )
+        };
         let tensors = PytorchReader::new(path).map_err(bad)?.into_tensors();
-        let tree = if need_tree { Some(PytorchReader::read_pickle_data(path, None).map_err(bad)?) } else { None };
-        Ok(Self { path, tensors, tree })
+        let tree = if need_tree {
+            Some(PytorchReader::read_pickle_data(path, None).map_err(bad)?)
+        } else {
+            None
+        };
+        Ok(Self {
+            path,
+            tensors,
+            tree,
+        })
     }
 
     fn err(&self, key: &str, msg: impl Into<String>) -> CoreError {
@@ -104,9 +121,18 @@ impl<'a> Pickle<'a> {
     }
 
     fn bytes(&self, key: &str, t: &Tensor) -> Result<Vec<u8>> {
-        let b = t.read().map_err(|e| self.err(key, format!("cannot read tensor data: {e}")))?;
+        let b = t
+            .read()
+            .map_err(|e| self.err(key, format!("cannot read tensor data: {e}")))?;
         if b.len() != t.byte_len() {
-            return Err(self.err(key, format!("tensor data has {} bytes, expected {}", b.len(), t.byte_len())));
+            return Err(self.err(
+                key,
+                format!(
+                    "tensor data has {} bytes, expected {}",
+                    b.len(),
+                    t.byte_len()
+                ),
+            ));
         }
         Ok(b)
     }
@@ -117,11 +143,30 @@ impl<'a> Pickle<'a> {
         self.check_shape(key, t, shape)?;
         let b = self.bytes(key, t)?;
         let v = match t.dtype() {
-            DType::F32 => b.chunks_exact(4).map(|c| f32::from_ne_bytes([c[0], c[1], c[2], c[3]])).collect(),
-            DType::F64 => b.chunks_exact(8).map(|c| f64::from_ne_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32).collect(),
-            DType::F16 => b.chunks_exact(2).map(|c| half::f16::from_ne_bytes([c[0], c[1]]).to_f32()).collect(),
-            DType::BF16 => b.chunks_exact(2).map(|c| half::bf16::from_ne_bytes([c[0], c[1]]).to_f32()).collect(),
-            other => return Err(self.err(key, format!("wrong dtype {other:?}, expected a float tensor (f32)"))),
+            DType::F32 => b
+                .chunks_exact(4)
+                .map(|c| f32::from_ne_bytes([c[0], c[1], c[2], c[3]]))
+                .collect(),
+            DType::F64 => b
+                .chunks_exact(8)
+                .map(|c| {
+                    f64::from_ne_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32
+                })
+                .collect(),
+            DType::F16 => b
+                .chunks_exact(2)
+                .map(|c| half::f16::from_ne_bytes([c[0], c[1]]).to_f32())
+                .collect(),
+            DType::BF16 => b
+                .chunks_exact(2)
+                .map(|c| half::bf16::from_ne_bytes([c[0], c[1]]).to_f32())
+                .collect(),
+            other => {
+                return Err(self.err(
+                    key,
+                    format!("wrong dtype {other:?}, expected a float tensor (f32)"),
+                ));
+            }
         };
         Ok(v)
     }
@@ -153,7 +198,10 @@ impl<'a> Pickle<'a> {
 
     fn check_shape(&self, key: &str, t: &Tensor, shape: &[usize]) -> Result<()> {
         if t.shape() != shape {
-            return Err(self.err(key, format!("wrong shape {:?}, expected {shape:?}", t.shape())));
+            return Err(self.err(
+                key,
+                format!("wrong shape {:?}, expected {shape:?}", t.shape()),
+            ));
         }
         Ok(())
     }
@@ -162,8 +210,15 @@ impl<'a> Pickle<'a> {
     fn dims_of(&self, key: &str) -> Result<Dims> {
         let t = self.get(key)?;
         match t.shape() {
-            [n, h, w, 3] if *n > 0 && *h > 0 && *w > 0 => Ok(Dims { n: *n, h: *h, w: *w }),
-            s => Err(self.err(key, format!("wrong shape {s:?}, expected [N, h, w, 3] with N, h, w > 0"))),
+            [n, h, w, 3] if *n > 0 && *h > 0 && *w > 0 => Ok(Dims {
+                n: *n,
+                h: *h,
+                w: *w,
+            }),
+            s => Err(self.err(
+                key,
+                format!("wrong shape {s:?}, expected [N, h, w, 3] with N, h, w > 0"),
+            )),
         }
     }
 
@@ -190,7 +245,10 @@ impl<'a> Pickle<'a> {
         }
         if self.tensors.contains_key(key) {
             let v = self.bool(key, &[])?;
-            return v.first().copied().ok_or_else(|| self.err(key, "empty scalar"));
+            return v
+                .first()
+                .copied()
+                .ok_or_else(|| self.err(key, "empty scalar"));
         }
         Err(self.err(key, "missing Python bool"))
     }
@@ -216,10 +274,15 @@ pub fn read_gt_bin(path: &Path) -> Result<GtBin> {
     let (n, h, w) = (d.n, d.h, d.w);
     let ext = p.get("extrinsics")?;
     let extrinsics = match ext.shape() {
-        [_, 3, 4] => p.f32_finite("extrinsics", &[n, 3, 4])?.chunks_exact(12).flat_map(|m| m.iter().copied().chain([0.0, 0.0, 0.0, 1.0])).collect(),
+        [_, 3, 4] => p
+            .f32_finite("extrinsics", &[n, 3, 4])?
+            .chunks_exact(12)
+            .flat_map(|m| m.iter().copied().chain([0.0, 0.0, 0.0, 1.0]))
+            .collect(),
         _ => {
             let v = p.f32_finite("extrinsics", &[n, 4, 4])?;
-            to_3x4(&v).map_err(|i| p.err("extrinsics", format!("view {i}: last row is not 0 0 0 1")))?;
+            to_3x4(&v)
+                .map_err(|i| p.err("extrinsics", format!("view {i}: last row is not 0 0 0 1")))?;
             v
         }
     };
@@ -266,12 +329,16 @@ pub fn read_sfm_dlt_outputs_bin(path: &Path) -> Result<SfmDltOutputsBin> {
 
 /// `[N, 3, 4]` f32 row-major → f64 matrices.
 fn ext_f64(v: &[f32]) -> Vec<Matrix3x4<f64>> {
-    v.chunks_exact(12).map(|m| Matrix3x4::from_row_iterator(m.iter().map(|&x| f64::from(x)))).collect()
+    v.chunks_exact(12)
+        .map(|m| Matrix3x4::from_row_iterator(m.iter().map(|&x| f64::from(x))))
+        .collect()
 }
 
 /// `[N, 3, 3]` f32 row-major → f64 matrices.
 fn k_f64(v: &[f32]) -> Vec<Matrix3<f64>> {
-    v.chunks_exact(9).map(|m| Matrix3::from_row_iterator(m.iter().map(|&x| f64::from(x)))).collect()
+    v.chunks_exact(9)
+        .map(|m| Matrix3::from_row_iterator(m.iter().map(|&x| f64::from(x))))
+        .collect()
 }
 
 impl GtBin {
@@ -282,7 +349,10 @@ impl GtBin {
             points: self.points.clone(),
             mask: self.point_masks.clone(),
             depth: None,
-            cameras: Cameras { cam_from_world: ext_f64(&ext), intrinsics: k_f64(&self.intrinsics) },
+            cameras: Cameras {
+                cam_from_world: ext_f64(&ext),
+                intrinsics: k_f64(&self.intrinsics),
+            },
         }
     }
 }
@@ -293,7 +363,10 @@ impl FfOutputsBin {
         FeedForward {
             points: self.points.clone(),
             conf: self.points_conf.clone(),
-            cameras: Cameras { cam_from_world: ext_f64(&self.extrinsics), intrinsics: k_f64(&self.intrinsics) },
+            cameras: Cameras {
+                cam_from_world: ext_f64(&self.extrinsics),
+                intrinsics: k_f64(&self.intrinsics),
+            },
         }
     }
 }
@@ -304,7 +377,10 @@ impl SfmDltOutputsBin {
         SfmResult {
             points: self.points.clone(),
             mask: self.point_masks.clone(),
-            cameras: Cameras { cam_from_world: ext_f64(&self.extrinsics), intrinsics: k_f64(&self.intrinsics) },
+            cameras: Cameras {
+                cam_from_world: ext_f64(&self.extrinsics),
+                intrinsics: k_f64(&self.intrinsics),
+            },
             camera_success: self.camera_success,
             points_success: self.points_success,
         }
@@ -312,12 +388,26 @@ impl SfmDltOutputsBin {
 }
 
 /// Checks that `got` (from `file`, tensor `key`) equals the dims established so far.
-fn same_dims(file: &Path, key: &str, got: Dims, want: &mut Option<(Dims, std::path::PathBuf)>) -> Result<()> {
+fn same_dims(
+    file: &Path,
+    key: &str,
+    got: Dims,
+    want: &mut Option<(Dims, std::path::PathBuf)>,
+) -> Result<()> {
     match want {
         Some((d, first)) if *d != got => Err(CoreError::format(
             file,
             key,
-            format!("N={} h={} w={} differ from N={} h={} w={} of {}", got.n, got.h, got.w, d.n, d.h, d.w, first.display()),
+            format!(
+                "N={} h={} w={} differ from N={} h={} w={} of {}",
+                got.n,
+                got.h,
+                got.w,
+                d.n,
+                d.h,
+                d.w,
+                first.display()
+            ),
         )),
         Some(_) => Ok(()),
         None => {
@@ -331,10 +421,26 @@ fn same_dims(file: &Path, key: &str, got: Dims, want: &mut Option<(Dims, std::pa
 /// The scene name is the directory name (it seeds the chunk sampler, `pipeline.md` §5); images
 /// come from `images_ff` (else the GT `images`). Not validated; `scene_dir::read_scene` does that.
 pub fn read_official_dir(dir: &Path) -> Result<Scene> {
-    let (gt_p, ff_p, sfm_p) = (dir.join("gt.bin"), dir.join("ff_outputs.bin"), dir.join("sfm_dlt_outputs.bin"));
-    let gt = if gt_p.is_file() { Some(read_gt_bin(&gt_p)?) } else { None };
-    let ff = if ff_p.is_file() { Some(read_ff_outputs_bin(&ff_p)?) } else { None };
-    let sfm = if sfm_p.is_file() { Some(read_sfm_dlt_outputs_bin(&sfm_p)?) } else { None };
+    let (gt_p, ff_p, sfm_p) = (
+        dir.join("gt.bin"),
+        dir.join("ff_outputs.bin"),
+        dir.join("sfm_dlt_outputs.bin"),
+    );
+    let gt = if gt_p.is_file() {
+        Some(read_gt_bin(&gt_p)?)
+    } else {
+        None
+    };
+    let ff = if ff_p.is_file() {
+        Some(read_ff_outputs_bin(&ff_p)?)
+    } else {
+        None
+    };
+    let sfm = if sfm_p.is_file() {
+        Some(read_sfm_dlt_outputs_bin(&sfm_p)?)
+    } else {
+        None
+    };
     let mut dims = None;
     if let Some(f) = &ff {
         same_dims(&ff_p, "points", f.dims, &mut dims)?;
@@ -348,9 +454,17 @@ pub fn read_official_dir(dir: &Path) -> Result<Scene> {
     let images = match (&ff, &gt) {
         (Some(f), _) => f.images_ff.clone(),
         (None, Some(g)) => g.images.clone(),
-        (None, None) => return Err(CoreError::format(dir, "", "official layout needs ff_outputs.bin or gt.bin")),
+        (None, None) => {
+            return Err(CoreError::format(
+                dir,
+                "",
+                "official layout needs ff_outputs.bin or gt.bin",
+            ));
+        }
     };
-    let dims = dims.map(|d| d.0).ok_or_else(|| CoreError::format(dir, "", "no scene file found"))?;
+    let dims = dims
+        .map(|d| d.0)
+        .ok_or_else(|| CoreError::format(dir, "", "no scene file found"))?;
     Ok(Scene {
         name: dir_name(dir),
         dims,
@@ -365,13 +479,27 @@ pub fn read_official_dir(dir: &Path) -> Result<Scene> {
 /// Name of a directory (its last component; canonicalised first so `.` works).
 pub fn dir_name(dir: &Path) -> String {
     let canon = dir.canonicalize().unwrap_or_else(|_| dir.to_path_buf());
-    canon.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()
+    canon
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default()
 }
 
 fn cams_f32(c: &Cameras) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-    let e34: Vec<f32> = c.cam_from_world.iter().flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>()).collect();
-    let e44: Vec<f32> = e34.chunks_exact(12).flat_map(|m| m.iter().copied().chain([0.0, 0.0, 0.0, 1.0])).collect();
-    let k: Vec<f32> = c.intrinsics.iter().flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>()).collect();
+    let e34: Vec<f32> = c
+        .cam_from_world
+        .iter()
+        .flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>())
+        .collect();
+    let e44: Vec<f32> = e34
+        .chunks_exact(12)
+        .flat_map(|m| m.iter().copied().chain([0.0, 0.0, 0.0, 1.0]))
+        .collect();
+    let k: Vec<f32> = c
+        .intrinsics
+        .iter()
+        .flat_map(|m| m.transpose().iter().map(|&x| x as f32).collect::<Vec<_>>())
+        .collect();
     (e34, e44, k)
 }
 

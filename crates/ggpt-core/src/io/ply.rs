@@ -29,7 +29,11 @@ pub struct PlyCloud {
 pub fn write_ply(path: &Path, cloud: &PlyCloud) -> Result<()> {
     let n = cloud.points.len();
     if cloud.colors.len() != n || cloud.confidence.as_ref().is_some_and(|c| c.len() != n) {
-        return Err(CoreError::format(path, "", "points, colors and confidence must have the same length"));
+        return Err(CoreError::format(
+            path,
+            "",
+            "points, colors and confidence must have the same length",
+        ));
     }
     let mut header = format!(
         "ply\nformat binary_little_endian 1.0\ncomment ggpt-rs {}\nelement vertex {n}\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n",
@@ -145,7 +149,10 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<(Encoding, Vec<Element>, us
     let mut lines = Vec::new();
     loop {
         let rest = bytes.get(pos..).unwrap_or_default();
-        let nl = rest.iter().position(|&b| b == b'\n').ok_or_else(|| err("truncated header (no end_header line)".into()))?;
+        let nl = rest
+            .iter()
+            .position(|&b| b == b'\n')
+            .ok_or_else(|| err("truncated header (no end_header line)".into()))?;
         let line = String::from_utf8_lossy(&rest[..nl]).trim().to_string();
         pos += nl + 1;
         if line == "end_header" {
@@ -167,21 +174,46 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<(Encoding, Vec<Element>, us
             [] | ["comment", ..] | ["obj_info", ..] => {}
             ["format", "ascii", _] => encoding = Some(Encoding::Ascii),
             ["format", "binary_little_endian", _] => encoding = Some(Encoding::BinaryLe),
-            ["format", other, ..] => return Err(err(format!("unsupported format '{other}' (ascii or binary_little_endian only)"))),
+            ["format", other, ..] => {
+                return Err(err(format!(
+                    "unsupported format '{other}' (ascii or binary_little_endian only)"
+                )));
+            }
             ["element", name, count] => {
-                let count = count.parse().map_err(|_| err(format!("bad element count '{count}'")))?;
-                elements.push(Element { name: name.to_string(), count, props: Vec::new() });
+                let count = count
+                    .parse()
+                    .map_err(|_| err(format!("bad element count '{count}'")))?;
+                elements.push(Element {
+                    name: name.to_string(),
+                    count,
+                    props: Vec::new(),
+                });
             }
             ["property", "list", ct, it, name] => {
                 let (ct, it) = (Scalar::parse(ct), Scalar::parse(it));
-                let (Some(ct), Some(it)) = (ct, it) else { return Err(err(format!("bad list property '{line}'"))) };
-                let el = elements.last_mut().ok_or_else(|| err("property before any element".into()))?;
-                el.props.push(Property { name: name.to_string(), kind: it, list_count: Some(ct) });
+                let (Some(ct), Some(it)) = (ct, it) else {
+                    return Err(err(format!("bad list property '{line}'")));
+                };
+                let el = elements
+                    .last_mut()
+                    .ok_or_else(|| err("property before any element".into()))?;
+                el.props.push(Property {
+                    name: name.to_string(),
+                    kind: it,
+                    list_count: Some(ct),
+                });
             }
             ["property", ty, name] => {
-                let kind = Scalar::parse(ty).ok_or_else(|| err(format!("unknown property type '{ty}'")))?;
-                let el = elements.last_mut().ok_or_else(|| err("property before any element".into()))?;
-                el.props.push(Property { name: name.to_string(), kind, list_count: None });
+                let kind = Scalar::parse(ty)
+                    .ok_or_else(|| err(format!("unknown property type '{ty}'")))?;
+                let el = elements
+                    .last_mut()
+                    .ok_or_else(|| err("property before any element".into()))?;
+                el.props.push(Property {
+                    name: name.to_string(),
+                    kind,
+                    list_count: None,
+                });
             }
             _ => return Err(err(format!("unrecognised header line '{line}'"))),
         }
@@ -202,19 +234,33 @@ impl Body<'_> {
     fn next(&mut self, kind: Scalar, what: &str) -> Result<f64> {
         if self.ascii {
             let rest = self.bytes.get(self.pos..).unwrap_or_default();
-            let start = rest.iter().position(|b| !b.is_ascii_whitespace()).ok_or_else(|| self.trunc(what))?;
-            let len = rest[start..].iter().position(|b| b.is_ascii_whitespace()).unwrap_or(rest.len() - start);
+            let start = rest
+                .iter()
+                .position(|b| !b.is_ascii_whitespace())
+                .ok_or_else(|| self.trunc(what))?;
+            let len = rest[start..]
+                .iter()
+                .position(|b| b.is_ascii_whitespace())
+                .unwrap_or(rest.len() - start);
             let tok = String::from_utf8_lossy(&rest[start..start + len]);
             self.pos += start + len;
-            tok.parse::<f64>().map_err(|_| CoreError::format(self.path, what, format!("bad ASCII value '{tok}'")))
+            tok.parse::<f64>()
+                .map_err(|_| CoreError::format(self.path, what, format!("bad ASCII value '{tok}'")))
         } else {
-            let b = self.bytes.get(self.pos..self.pos + kind.size()).ok_or_else(|| self.trunc(what))?;
+            let b = self
+                .bytes
+                .get(self.pos..self.pos + kind.size())
+                .ok_or_else(|| self.trunc(what))?;
             self.pos += kind.size();
             Ok(kind.decode(b))
         }
     }
     fn trunc(&self, what: &str) -> CoreError {
-        CoreError::format(self.path, what, "truncated body (fewer records than the header declares)")
+        CoreError::format(
+            self.path,
+            what,
+            "truncated body (fewer records than the header declares)",
+        )
     }
 }
 
@@ -222,23 +268,54 @@ impl Body<'_> {
 pub fn read_ply(path: &Path) -> Result<PlyCloud> {
     let bytes = std::fs::read(path).map_err(|e| CoreError::io(path, e))?;
     let (enc, elements, start) = parse_header(path, &bytes)?;
-    let vertex = elements.iter().find(|e| e.name == "vertex").ok_or_else(|| CoreError::format(path, "vertex", "no vertex element"))?;
-    let find = |name: &str| vertex.props.iter().position(|p| p.name == name && p.list_count.is_none());
-    let need = |name: &str| find(name).ok_or_else(|| CoreError::format(path, name, "missing vertex property"));
+    let vertex = elements
+        .iter()
+        .find(|e| e.name == "vertex")
+        .ok_or_else(|| CoreError::format(path, "vertex", "no vertex element"))?;
+    let find = |name: &str| {
+        vertex
+            .props
+            .iter()
+            .position(|p| p.name == name && p.list_count.is_none())
+    };
+    let need = |name: &str| {
+        find(name).ok_or_else(|| CoreError::format(path, name, "missing vertex property"))
+    };
     let (ix, iy, iz) = (need("x")?, need("y")?, need("z")?);
     let (ir, ig, ib) = (need("red")?, need("green")?, need("blue")?);
     for i in [ir, ig, ib] {
         if !vertex.props[i].kind.is_int() {
-            return Err(CoreError::format(path, &vertex.props[i].name, "colour property must be an integer type"));
+            return Err(CoreError::format(
+                path,
+                &vertex.props[i].name,
+                "colour property must be an integer type",
+            ));
         }
     }
     let ic = find("confidence");
     // Sanity bound before allocating: every record needs at least one byte.
     if vertex.count > bytes.len() {
-        return Err(CoreError::format(path, "vertex", format!("header declares {} vertices, the file has only {} bytes", vertex.count, bytes.len())));
+        return Err(CoreError::format(
+            path,
+            "vertex",
+            format!(
+                "header declares {} vertices, the file has only {} bytes",
+                vertex.count,
+                bytes.len()
+            ),
+        ));
     }
-    let mut body = Body { path, bytes: &bytes, pos: start, ascii: enc == Encoding::Ascii };
-    let mut cloud = PlyCloud { points: Vec::with_capacity(vertex.count), colors: Vec::with_capacity(vertex.count), confidence: ic.map(|_| Vec::with_capacity(vertex.count)) };
+    let mut body = Body {
+        path,
+        bytes: &bytes,
+        pos: start,
+        ascii: enc == Encoding::Ascii,
+    };
+    let mut cloud = PlyCloud {
+        points: Vec::with_capacity(vertex.count),
+        colors: Vec::with_capacity(vertex.count),
+        confidence: ic.map(|_| Vec::with_capacity(vertex.count)),
+    };
     let mut vals = Vec::new();
     for el in &elements {
         for _ in 0..el.count {
@@ -249,7 +326,11 @@ pub fn read_ply(path: &Path) -> Result<PlyCloud> {
                     Some(ct) => {
                         let k = body.next(ct, &p.name)?;
                         if !(0.0..=1e9).contains(&k) || k.fract() != 0.0 {
-                            return Err(CoreError::format(path, &p.name, format!("bad list length {k}")));
+                            return Err(CoreError::format(
+                                path,
+                                &p.name,
+                                format!("bad list length {k}"),
+                            ));
                         }
                         for _ in 0..k as usize {
                             body.next(p.kind, &p.name)?;
@@ -259,21 +340,43 @@ pub fn read_ply(path: &Path) -> Result<PlyCloud> {
                 }
             }
             if el.name == "vertex" {
-                push_vertex(path, &mut cloud, &vals, [ix, iy, iz], [ir, ig, ib], ic, &vertex.props)?;
+                push_vertex(
+                    path,
+                    &mut cloud,
+                    &vals,
+                    [ix, iy, iz],
+                    [ir, ig, ib],
+                    ic,
+                    &vertex.props,
+                )?;
             }
         }
     }
     Ok(cloud)
 }
 
-fn push_vertex(path: &Path, cloud: &mut PlyCloud, v: &[f64], xyz: [usize; 3], rgb: [usize; 3], ic: Option<usize>, props: &[Property]) -> Result<()> {
+fn push_vertex(
+    path: &Path,
+    cloud: &mut PlyCloud,
+    v: &[f64],
+    xyz: [usize; 3],
+    rgb: [usize; 3],
+    ic: Option<usize>,
+    props: &[Property],
+) -> Result<()> {
     let get = |i: usize| v.get(i).copied().unwrap_or(0.0);
-    cloud.points.push([get(xyz[0]) as f32, get(xyz[1]) as f32, get(xyz[2]) as f32]);
+    cloud
+        .points
+        .push([get(xyz[0]) as f32, get(xyz[1]) as f32, get(xyz[2]) as f32]);
     let mut c = [0u8; 3];
     for (k, &i) in rgb.iter().enumerate() {
         let x = get(i);
         if !(0.0..=255.0).contains(&x) {
-            return Err(CoreError::format(path, &props[i].name, format!("colour {x} outside 0..=255 (vertex {})", cloud.colors.len())));
+            return Err(CoreError::format(
+                path,
+                &props[i].name,
+                format!("colour {x} outside 0..=255 (vertex {})", cloud.colors.len()),
+            ));
         }
         c[k] = x as u8;
     }

@@ -99,7 +99,8 @@ pub fn detect_layout(dir: &Path) -> Result<Layout> {
     if dir.join(MANIFEST).is_file() {
         return Ok(Layout::Project);
     }
-    if dir.join("ff.npz").is_file() || dir.join("sfm.npz").is_file() || dir.join("matches").is_dir() {
+    if dir.join("ff.npz").is_file() || dir.join("sfm.npz").is_file() || dir.join("matches").is_dir()
+    {
         return Ok(Layout::InferFolder);
     }
     if dir.join("ff_outputs.bin").is_file() || dir.join("gt.bin").is_file() {
@@ -138,7 +139,10 @@ pub fn write_scene(dir: &Path, scene: &Scene) -> Result<()> {
     for m in &scene.matches {
         check_matcher_name(dir, &m.matcher)?;
         if matchers.contains(&m.matcher) {
-            return Err(CoreError::Invalid(format!("duplicate matcher name '{}'", m.matcher)));
+            return Err(CoreError::Invalid(format!(
+                "duplicate matcher name '{}'",
+                m.matcher
+            )));
         }
         let rel = format!("matches/{}.safetensors", m.matcher);
         let p = dir.join(&rel);
@@ -165,12 +169,17 @@ pub fn write_scene(dir: &Path, scene: &Scene) -> Result<()> {
         files,
     };
     let mpath = dir.join(MANIFEST);
-    let json = serde_json::to_vec_pretty(&manifest).map_err(|e| CoreError::format(&mpath, "", format!("cannot encode manifest: {e}")))?;
+    let json = serde_json::to_vec_pretty(&manifest)
+        .map_err(|e| CoreError::format(&mpath, "", format!("cannot encode manifest: {e}")))?;
     write_bytes_atomic(&mpath, &json)
 }
 
 fn file_sum(rel: &str, bytes: &[u8]) -> FileSum {
-    FileSum { path: rel.to_string(), bytes: bytes.len() as u64, crc32: format!("{:08x}", crc32fast::hash(bytes)) }
+    FileSum {
+        path: rel.to_string(),
+        bytes: bytes.len() as u64,
+        crc32: format!("{:08x}", crc32fast::hash(bytes)),
+    }
 }
 
 /// Matcher names become file names: `[A-Za-z0-9._+-]`, 1..=128 chars, not starting with `.`.
@@ -178,11 +187,19 @@ pub(crate) fn check_matcher_name(dir: &Path, name: &str) -> Result<()> {
     let ok = !name.is_empty()
         && name.len() <= 128
         && !name.starts_with('.')
-        && name.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-' | '+'));
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-' | '+'));
     if ok {
         Ok(())
     } else {
-        Err(CoreError::format(dir, "matchers", format!("matcher name '{name}' is not usable as a file name (allowed: A-Z a-z 0-9 . _ - +, not starting with '.')")))
+        Err(CoreError::format(
+            dir,
+            "matchers",
+            format!(
+                "matcher name '{name}' is not usable as a file name (allowed: A-Z a-z 0-9 . _ - +, not starting with '.')"
+            ),
+        ))
     }
 }
 
@@ -224,40 +241,52 @@ fn write_previews(dir: &Path, scene: &Scene) -> Result<()> {
     let d = scene.dims;
     let view = 3 * d.hw();
     for (i, px) in scene.images.chunks_exact(view.max(1)).enumerate().take(d.n) {
-        let bytes: Vec<u8> = px.iter().map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+        let bytes: Vec<u8> = px
+            .iter()
+            .map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+            .collect();
         let path = dir.join("images").join(format!("{i:06}.png"));
-        let png = encode_png(&path, d.w, d.h, bytes)?;
-        write_bytes_atomic(&path, &png)?;
+        crate::io::png::write_rgb8(&path, d.w, d.h, &bytes)?;
     }
     Ok(())
-}
-
-/// Encodes an RGB8 image as PNG bytes.
-pub(crate) fn encode_png(path: &Path, w: usize, h: usize, rgb: Vec<u8>) -> Result<Vec<u8>> {
-    let img = image::RgbImage::from_raw(w as u32, h as u32, rgb)
-        .ok_or_else(|| CoreError::format(path, "", "image buffer size does not match w x h x 3"))?;
-    let mut out = std::io::Cursor::new(Vec::new());
-    img.write_to(&mut out, image::ImageFormat::Png)
-        .map_err(|e| CoreError::format(path, "", format!("PNG encoding failed: {e}")))?;
-    Ok(out.into_inner())
 }
 
 /// Reads and checks `scene.json`.
 pub fn read_manifest(dir: &Path) -> Result<Manifest> {
     let path = dir.join(MANIFEST);
     let bytes = std::fs::read(&path).map_err(|e| CoreError::io(&path, e))?;
-    let m: Manifest = serde_json::from_slice(&bytes).map_err(|e| CoreError::format(&path, "", format!("invalid manifest JSON: {e}")))?;
+    let m: Manifest = serde_json::from_slice(&bytes)
+        .map_err(|e| CoreError::format(&path, "", format!("invalid manifest JSON: {e}")))?;
     if m.format != FORMAT_NAME {
-        return Err(CoreError::format(&path, "format", format!("'{}' is not {FORMAT_NAME}", m.format)));
+        return Err(CoreError::format(
+            &path,
+            "format",
+            format!("'{}' is not {FORMAT_NAME}", m.format),
+        ));
     }
     if m.version != FORMAT_VERSION {
-        return Err(CoreError::format(&path, "version", format!("unsupported version {} (this build reads {FORMAT_VERSION})", m.version)));
+        return Err(CoreError::format(
+            &path,
+            "version",
+            format!(
+                "unsupported version {} (this build reads {FORMAT_VERSION})",
+                m.version
+            ),
+        ));
     }
     if m.n == 0 || m.h == 0 || m.w == 0 {
-        return Err(CoreError::format(&path, "n/h/w", format!("empty scene: n={} h={} w={}", m.n, m.h, m.w)));
+        return Err(CoreError::format(
+            &path,
+            "n/h/w",
+            format!("empty scene: n={} h={} w={}", m.n, m.h, m.w),
+        ));
     }
     if m.parts.gt_depth && !m.parts.gt {
-        return Err(CoreError::format(&path, "parts.gt_depth", "gt_depth without gt"));
+        return Err(CoreError::format(
+            &path,
+            "parts.gt_depth",
+            "gt_depth without gt",
+        ));
     }
     for name in &m.matchers {
         check_matcher_name(&path, name)?;
@@ -268,24 +297,45 @@ pub fn read_manifest(dir: &Path) -> Result<Manifest> {
 /// Reads a data file listed in the manifest and checks its size and CRC-32.
 fn read_checked(dir: &Path, m: &Manifest, rel: &str) -> Result<(PathBuf, Vec<u8>)> {
     let path = dir.join(rel);
-    let sum = m
-        .files
-        .iter()
-        .find(|f| f.path == rel)
-        .ok_or_else(|| CoreError::format(dir.join(MANIFEST), "files", format!("no checksum entry for {rel}")))?;
+    let sum = m.files.iter().find(|f| f.path == rel).ok_or_else(|| {
+        CoreError::format(
+            dir.join(MANIFEST),
+            "files",
+            format!("no checksum entry for {rel}"),
+        )
+    })?;
     // A mismatch is in the data file or in the manifest: the message names both.
     let manifest = dir.join(MANIFEST);
-    let bytes = std::fs::read(&path).map_err(|e| CoreError::format(&path, "", format!("cannot read the file listed in {}: {e}", manifest.display())))?;
+    let bytes = std::fs::read(&path).map_err(|e| {
+        CoreError::format(
+            &path,
+            "",
+            format!("cannot read the file listed in {}: {e}", manifest.display()),
+        )
+    })?;
     if bytes.len() as u64 != sum.bytes {
         return Err(CoreError::format(
             &path,
             "bytes",
-            format!("size {} differs from the {} of {} (truncated or replaced file, or edited manifest)", bytes.len(), sum.bytes, manifest.display()),
+            format!(
+                "size {} differs from the {} of {} (truncated or replaced file, or edited manifest)",
+                bytes.len(),
+                sum.bytes,
+                manifest.display()
+            ),
         ));
     }
     let crc = format!("{:08x}", crc32fast::hash(&bytes));
     if crc != sum.crc32.to_ascii_lowercase() {
-        return Err(CoreError::format(&path, "crc32", format!("checksum mismatch: file has {crc}, {} says {} (corrupt file or edited manifest)", manifest.display(), sum.crc32)));
+        return Err(CoreError::format(
+            &path,
+            "crc32",
+            format!(
+                "checksum mismatch: file has {crc}, {} says {} (corrupt file or edited manifest)",
+                manifest.display(),
+                sum.crc32
+            ),
+        ));
     }
     Ok((path, bytes))
 }
@@ -300,9 +350,21 @@ fn read_project_scene(dir: &Path) -> Result<Scene> {
     check_keys(&f, &m).map_err(layout)?;
     let (n, h, w) = (m.n, m.h, m.w);
     let images = f.f32_finite("images", &[n, h, w, 3]).map_err(layout)?;
-    let gt = if m.parts.gt { Some(read_gt(&f, &m).map_err(layout)?) } else { None };
-    let ff = if m.parts.ff { Some(read_ff(&f, n, h, w).map_err(layout)?) } else { None };
-    let sfm = if m.parts.sfm { Some(read_sfm(&f, n, h, w).map_err(layout)?) } else { None };
+    let gt = if m.parts.gt {
+        Some(read_gt(&f, &m).map_err(layout)?)
+    } else {
+        None
+    };
+    let ff = if m.parts.ff {
+        Some(read_ff(&f, n, h, w).map_err(layout)?)
+    } else {
+        None
+    };
+    let sfm = if m.parts.sfm {
+        Some(read_sfm(&f, n, h, w).map_err(layout)?)
+    } else {
+        None
+    };
     let mut matches = Vec::new();
     for name in &m.matchers {
         let rel = format!("matches/{name}.safetensors");
@@ -312,22 +374,42 @@ fn read_project_scene(dir: &Path) -> Result<Scene> {
             return Err(CoreError::format(
                 dir.join(&rel),
                 "pred_matches",
-                format!("N={} h={} w={} differ from N={n} h={h} w={w} of {}", mf.n, mf.h, mf.w, dir.join(MANIFEST).display()),
+                format!(
+                    "N={} h={} w={} differ from N={n} h={h} w={w} of {}",
+                    mf.n,
+                    mf.h,
+                    mf.w,
+                    dir.join(MANIFEST).display()
+                ),
             ));
         }
         let mut set = mf.set;
         set.matcher = name.clone();
         matches.push(set);
     }
-    Ok(Scene { name: m.name.clone(), dims: Dims { n, h, w }, images, gt, ff, sfm, matches })
+    Ok(Scene {
+        name: m.name.clone(),
+        dims: Dims { n, h, w },
+        images,
+        gt,
+        ff,
+        sfm,
+        matches,
+    })
 }
 
 /// A shape or key mismatch of `scene.safetensors` is in that file or in the manifest that
 /// describes it (`N`, `h`, `w`, parts): the message then names the manifest too.
 fn with_layout_source(e: CoreError, manifest: &Path) -> CoreError {
     match e {
-        CoreError::Format { path, key, message } if message.contains("shape") || message.contains("manifest's parts") => {
-            CoreError::Format { path, key, message: format!("{message} (layout from {})", manifest.display()) }
+        CoreError::Format { path, key, message }
+            if message.contains("shape") || message.contains("manifest's parts") =>
+        {
+            CoreError::Format {
+                path,
+                key,
+                message: format!("{message} (layout from {})", manifest.display()),
+            }
         }
         other => other,
     }
@@ -349,7 +431,12 @@ fn check_keys(f: &StFile, m: &Manifest) -> Result<()> {
         want.extend(cams("ff"));
     }
     if m.parts.sfm {
-        want.extend(["sfm/points".into(), "sfm/mask".into(), "sfm/camera_success".into(), "sfm/points_success".into()]);
+        want.extend([
+            "sfm/points".into(),
+            "sfm/mask".into(),
+            "sfm/camera_success".into(),
+            "sfm/points_success".into(),
+        ]);
         want.extend(cams("sfm"));
     }
     for k in &want {
@@ -359,7 +446,10 @@ fn check_keys(f: &StFile, m: &Manifest) -> Result<()> {
     }
     for k in f.keys() {
         if !want.contains(&k) {
-            return Err(f.err(&k, "unexpected tensor (not implied by the manifest's parts)"));
+            return Err(f.err(
+                &k,
+                "unexpected tensor (not implied by the manifest's parts)",
+            ));
         }
     }
     Ok(())
@@ -374,7 +464,11 @@ fn read_cameras(f: &StFile, part: &str, n: usize) -> Result<Cameras> {
 
 fn read_gt(f: &StFile, m: &Manifest) -> Result<GroundTruth> {
     let (n, h, w) = (m.n, m.h, m.w);
-    let depth = if m.parts.gt_depth { Some(f.f32_finite("gt/depth", &[n, h, w])?) } else { None };
+    let depth = if m.parts.gt_depth {
+        Some(f.f32_finite("gt/depth", &[n, h, w])?)
+    } else {
+        None
+    };
     Ok(GroundTruth {
         points: f.f32_finite("gt/points", &[n, h, w, 3])?,
         mask: f.bool("gt/mask", &[n, h, w])?,
@@ -386,7 +480,11 @@ fn read_gt(f: &StFile, m: &Manifest) -> Result<GroundTruth> {
 fn read_ff(f: &StFile, n: usize, h: usize, w: usize) -> Result<FeedForward> {
     let conf = f.f32("ff/conf", &[n, h, w])?;
     check_finite_f32(f.path(), "ff/conf", &conf)?;
-    Ok(FeedForward { points: f.f32_finite("ff/points", &[n, h, w, 3])?, conf, cameras: read_cameras(f, "ff", n)? })
+    Ok(FeedForward {
+        points: f.f32_finite("ff/points", &[n, h, w, 3])?,
+        conf,
+        cameras: read_cameras(f, "ff", n)?,
+    })
 }
 
 fn read_sfm(f: &StFile, n: usize, h: usize, w: usize) -> Result<SfmResult> {

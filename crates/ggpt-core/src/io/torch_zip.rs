@@ -18,7 +18,20 @@ use crate::{CoreError, Result};
 pub enum TorchValue {
     /// A tensor view of its own storage: storage type (`FloatStorage`, `BoolStorage`, ...),
     /// storage bytes (little-endian), storage numel, element offset, size, stride.
-    Tensor { storage: &'static str, bytes: Vec<u8>, numel: usize, offset: usize, size: Vec<usize>, stride: Vec<usize> },
+    Tensor {
+        /// Storage type (`FloatStorage`, `BoolStorage`, ...).
+        storage: &'static str,
+        /// Storage bytes, little-endian.
+        bytes: Vec<u8>,
+        /// Elements in the storage.
+        numel: usize,
+        /// Element offset of the view in the storage.
+        offset: usize,
+        /// Shape of the view.
+        size: Vec<usize>,
+        /// Strides of the view, in elements.
+        stride: Vec<usize>,
+    },
     /// A Python bool.
     Bool(bool),
 }
@@ -59,7 +72,8 @@ pub fn contiguous_strides(size: &[usize]) -> Vec<usize> {
 }
 
 fn unicode(p: &mut Vec<u8>, s: &str) -> Result<()> {
-    let len = u32::try_from(s.len()).map_err(|_| CoreError::Invalid(format!("pickle string of {} bytes", s.len())))?;
+    let len = u32::try_from(s.len())
+        .map_err(|_| CoreError::Invalid(format!("pickle string of {} bytes", s.len())))?;
     p.push(b'X');
     p.extend_from_slice(&len.to_le_bytes());
     p.extend_from_slice(s.as_bytes());
@@ -67,7 +81,8 @@ fn unicode(p: &mut Vec<u8>, s: &str) -> Result<()> {
 }
 
 fn int(p: &mut Vec<u8>, v: usize) -> Result<()> {
-    let v = i32::try_from(v).map_err(|_| CoreError::Invalid(format!("pickle integer {v} does not fit BININT")))?;
+    let v = i32::try_from(v)
+        .map_err(|_| CoreError::Invalid(format!("pickle integer {v} does not fit BININT")))?;
     p.push(b'J');
     p.extend_from_slice(&v.to_le_bytes());
     Ok(())
@@ -91,7 +106,14 @@ pub fn torch_zip_bytes(stem: &str, entries: &[(&str, TorchValue)]) -> Result<Vec
         unicode(&mut p, key)?;
         match v {
             TorchValue::Bool(b) => p.push(if *b { 0x88 } else { 0x89 }),
-            TorchValue::Tensor { storage, bytes, numel, offset, size, stride } => {
+            TorchValue::Tensor {
+                storage,
+                bytes,
+                numel,
+                offset,
+                size,
+                stride,
+            } => {
                 let id = storages.len();
                 storages.push(bytes);
                 p.extend_from_slice(b"ctorch._utils\n_rebuild_tensor_v2\n(");
@@ -115,16 +137,21 @@ pub fn torch_zip_bytes(stem: &str, entries: &[(&str, TorchValue)]) -> Result<Vec
     let zip_err = |e: zip::result::ZipError| CoreError::Invalid(format!("torch zip: {e}"));
     let io_err = |e: std::io::Error| CoreError::Invalid(format!("torch zip: {e}"));
     let mut zw = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
-    let opts = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
-    zw.start_file(format!("{stem}/data.pkl"), opts).map_err(zip_err)?;
+    let opts =
+        zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+    zw.start_file(format!("{stem}/data.pkl"), opts)
+        .map_err(zip_err)?;
     zw.write_all(&p).map_err(io_err)?;
-    zw.start_file(format!("{stem}/byteorder"), opts).map_err(zip_err)?;
+    zw.start_file(format!("{stem}/byteorder"), opts)
+        .map_err(zip_err)?;
     zw.write_all(b"little").map_err(io_err)?;
     for (i, s) in storages.iter().enumerate() {
-        zw.start_file(format!("{stem}/data/{i}"), opts).map_err(zip_err)?;
+        zw.start_file(format!("{stem}/data/{i}"), opts)
+            .map_err(zip_err)?;
         zw.write_all(s).map_err(io_err)?;
     }
-    zw.start_file(format!("{stem}/version"), opts).map_err(zip_err)?;
+    zw.start_file(format!("{stem}/version"), opts)
+        .map_err(zip_err)?;
     zw.write_all(b"3\n").map_err(io_err)?;
     Ok(zw.finish().map_err(zip_err)?.into_inner())
 }
@@ -132,6 +159,9 @@ pub fn torch_zip_bytes(stem: &str, entries: &[(&str, TorchValue)]) -> Result<Vec
 /// Writes `entries` as a torch zip at `path` (archive folder named after the file stem),
 /// atomically.
 pub fn write_torch_zip(path: &Path, entries: &[(&str, TorchValue)]) -> Result<()> {
-    let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).ok_or_else(|| CoreError::format(path, "", "no file name"))?;
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .ok_or_else(|| CoreError::format(path, "", "no file name"))?;
     write_bytes_atomic(path, &torch_zip_bytes(&stem, entries)?)
 }

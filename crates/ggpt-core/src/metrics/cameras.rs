@@ -57,7 +57,10 @@ pub struct CameraMetrics {
 }
 
 fn rt(m: &Matrix3x4<f64>) -> (Matrix3<f64>, Vector3<f64>) {
-    (m.fixed_view::<3, 3>(0, 0).into_owned(), m.column(3).into_owned())
+    (
+        m.fixed_view::<3, 3>(0, 0).into_owned(),
+        m.column(3).into_owned(),
+    )
 }
 
 /// Relative pose `cam_i_from_cam_j = cam_from_world_i (cam_from_world_j)^-1`, with the inverse
@@ -83,17 +86,32 @@ pub fn translation_error_deg(t_gt: &Vector3<f64>, t_pred: &Vector3<f64>) -> f64 
     let dot = a.dot(&b);
     // `clamp_min` semantics: NaN stays NaN (f64::max would drop it).
     let raw = 1.0 - dot * dot;
-    let loss = if raw.is_nan() { raw } else { raw.max(TRANSLATION_LOSS_EPS) };
+    let loss = if raw.is_nan() {
+        raw
+    } else {
+        raw.max(TRANSLATION_LOSS_EPS)
+    };
     let e = (1.0 - loss).sqrt().acos().to_degrees();
-    if e.is_finite() { e } else { NON_FINITE_ERROR_DEG }
+    if e.is_finite() {
+        e
+    } else {
+        NON_FINITE_ERROR_DEG
+    }
 }
 
 /// Errors of the relative poses of all pairs `i < j` (`pipeline.md` §10.3). `pred` and `gt` are
 /// `cam_from_world` per view (each in its own world frame and scale; only relative poses and
 /// translation directions are compared). Fails when the view counts differ.
-pub fn relative_pose_errors(pred: &[Matrix3x4<f64>], gt: &[Matrix3x4<f64>]) -> Result<Vec<PairError>> {
+pub fn relative_pose_errors(
+    pred: &[Matrix3x4<f64>],
+    gt: &[Matrix3x4<f64>],
+) -> Result<Vec<PairError>> {
     if pred.len() != gt.len() {
-        return Err(CoreError::Invalid(format!("camera metrics: {} predicted views vs {} GT views", pred.len(), gt.len())));
+        return Err(CoreError::Invalid(format!(
+            "camera metrics: {} predicted views vs {} GT views",
+            pred.len(),
+            gt.len()
+        )));
     }
     let mut out = Vec::new();
     for (i, (pi, gi)) in pred.iter().zip(gt.iter()).enumerate() {
@@ -101,9 +119,19 @@ pub fn relative_pose_errors(pred: &[Matrix3x4<f64>], gt: &[Matrix3x4<f64>]) -> R
             let (r_pred, t_pred) = relative(pi, pj);
             let (r_gt, t_gt) = relative(gi, gj);
             let rot = rotation_error_deg(&r_gt, &r_pred);
-            let rot = if rot.is_finite() { rot } else { NON_FINITE_ERROR_DEG };
+            let rot = if rot.is_finite() {
+                rot
+            } else {
+                NON_FINITE_ERROR_DEG
+            };
             let trans = translation_error_deg(&t_gt, &t_pred);
-            out.push(PairError { i, j, rot_deg: rot, trans_deg: trans, max_deg: rot.max(trans) });
+            out.push(PairError {
+                i,
+                j,
+                rot_deg: rot,
+                trans_deg: trans,
+                max_deg: rot.max(trans),
+            });
         }
     }
     Ok(out)
@@ -114,13 +142,20 @@ pub fn relative_pose_errors(pred: &[Matrix3x4<f64>], gt: &[Matrix3x4<f64>]) -> R
 pub fn fov_deg(k: &Matrix3<f64>) -> (f64, f64) {
     let w = 2.0 * (k[(0, 2)] + 0.5);
     let h = 2.0 * (k[(1, 2)] + 0.5);
-    ((w / (2.0 * k[(0, 0)])).atan().to_degrees() * 2.0, (h / (2.0 * k[(1, 1)])).atan().to_degrees() * 2.0)
+    (
+        (w / (2.0 * k[(0, 0)])).atan().to_degrees() * 2.0,
+        (h / (2.0 * k[(1, 1)])).atan().to_degrees() * 2.0,
+    )
 }
 
 /// Mean absolute FoV differences `(fovx, fovy)` between predicted and GT intrinsics, degrees.
 pub fn fov_errors(pred: &[Matrix3<f64>], gt: &[Matrix3<f64>]) -> Result<(f64, f64)> {
     if pred.len() != gt.len() || pred.is_empty() {
-        return Err(CoreError::Invalid(format!("FoV error: {} predicted vs {} GT intrinsics", pred.len(), gt.len())));
+        return Err(CoreError::Invalid(format!(
+            "FoV error: {} predicted vs {} GT intrinsics",
+            pred.len(),
+            gt.len()
+        )));
     }
     let (ex, ey): (Vec<f64>, Vec<f64>) = pred
         .iter()
@@ -137,7 +172,10 @@ pub fn fov_errors(pred: &[Matrix3<f64>], gt: &[Matrix3<f64>]) -> Result<(f64, f6
 /// Camera accuracy of `pred` against `gt` (`pipeline.md` §10.3). Needs at least 2 views.
 pub fn camera_metrics(pred: &Cameras, gt: &Cameras) -> Result<CameraMetrics> {
     if pred.len() < 2 {
-        return Err(CoreError::Invalid(format!("camera metrics need at least 2 views, got {}", pred.len())));
+        return Err(CoreError::Invalid(format!(
+            "camera metrics need at least 2 views, got {}",
+            pred.len()
+        )));
     }
     let pairs = relative_pose_errors(&pred.cam_from_world, &gt.cam_from_world)?;
     let (fovx, fovy) = fov_errors(&pred.intrinsics, &gt.intrinsics)?;
@@ -165,7 +203,10 @@ mod tests {
     use super::*;
     use nalgebra::{Rotation3, Unit};
 
-    const SFM_SMALL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/fixtures/sfm_small");
+    const SFM_SMALL: &str = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../../shared/fixtures/sfm_small"
+    );
 
     fn pose(r: Matrix3<f64>, t: Vector3<f64>) -> Matrix3x4<f64> {
         let mut m = Matrix3x4::zeros();
@@ -175,17 +216,33 @@ mod tests {
     }
 
     fn k(f: f64, w: usize, h: usize) -> Matrix3<f64> {
-        Matrix3::new(f, 0.0, (w as f64 - 1.0) / 2.0, 0.0, f, (h as f64 - 1.0) / 2.0, 0.0, 0.0, 1.0)
+        Matrix3::new(
+            f,
+            0.0,
+            (w as f64 - 1.0) / 2.0,
+            0.0,
+            f,
+            (h as f64 - 1.0) / 2.0,
+            0.0,
+            0.0,
+            1.0,
+        )
     }
 
     fn rig(n: usize) -> Cameras {
         let cam_from_world = (0..n)
             .map(|i| {
                 let a = i as f64 * 0.2;
-                pose(*Rotation3::from_euler_angles(0.05 * a, a, 0.0).matrix(), Vector3::new(-(i as f64), 0.1 * i as f64, 0.3))
+                pose(
+                    *Rotation3::from_euler_angles(0.05 * a, a, 0.0).matrix(),
+                    Vector3::new(-(i as f64), 0.1 * i as f64, 0.3),
+                )
             })
             .collect();
-        Cameras { cam_from_world, intrinsics: vec![k(50.0, 56, 42); n] }
+        Cameras {
+            cam_from_world,
+            intrinsics: vec![k(50.0, 56, 42); n],
+        }
     }
 
     #[test]
@@ -226,17 +283,24 @@ mod tests {
     fn hand_computed_errors() {
         // Two views: GT relative pose = identity rotation, baseline along x.
         let gt = Cameras {
-            cam_from_world: vec![pose(Matrix3::identity(), Vector3::zeros()), pose(Matrix3::identity(), Vector3::new(-1.0, 0.0, 0.0))],
+            cam_from_world: vec![
+                pose(Matrix3::identity(), Vector3::zeros()),
+                pose(Matrix3::identity(), Vector3::new(-1.0, 0.0, 0.0)),
+            ],
             intrinsics: vec![k(50.0, 56, 42); 2],
         };
         // Prediction: view 1 rotated by 2° about y, translation direction tilted by 4.5° and flipped.
-        let r = *Rotation3::from_axis_angle(&Unit::new_normalize(Vector3::y()), 2f64.to_radians()).matrix();
+        let r = *Rotation3::from_axis_angle(&Unit::new_normalize(Vector3::y()), 2f64.to_radians())
+            .matrix();
         let a = 4.5f64.to_radians();
         let t_want = -Vector3::new(a.cos(), a.sin(), 0.0) * 3.0; // opposite sign of the GT direction
         // cam_0_from_cam_1 = (R0 R1^T, t0 - R0 R1^T t1); view 0 identity => (R1^T, -R1^T t1).
         // R1 = r^T, t1 = -r^T t_want gives the relative pose (r, t_want).
         let pred = Cameras {
-            cam_from_world: vec![pose(Matrix3::identity(), Vector3::zeros()), pose(r.transpose(), -(r.transpose() * t_want))],
+            cam_from_world: vec![
+                pose(Matrix3::identity(), Vector3::zeros()),
+                pose(r.transpose(), -(r.transpose() * t_want)),
+            ],
             intrinsics: vec![k(50.0, 56, 42), k(60.0, 56, 42)],
         };
         let pairs = relative_pose_errors(&pred.cam_from_world, &gt.cam_from_world).unwrap();
@@ -247,20 +311,30 @@ mod tests {
         assert_eq!(p.max_deg, p.trans_deg);
         // FoV: 2 atan(56 / 100) vs 2 atan(56 / 120) on view 1 only.
         let (fx, fy) = fov_errors(&pred.intrinsics, &gt.intrinsics).unwrap();
-        let want_x = (2.0 * (56.0f64 / 100.0).atan().to_degrees() - 2.0 * (56.0f64 / 120.0).atan().to_degrees()) / 2.0;
-        let want_y = (2.0 * (42.0f64 / 100.0).atan().to_degrees() - 2.0 * (42.0f64 / 120.0).atan().to_degrees()) / 2.0;
+        let want_x = (2.0 * (56.0f64 / 100.0).atan().to_degrees()
+            - 2.0 * (56.0f64 / 120.0).atan().to_degrees())
+            / 2.0;
+        let want_y = (2.0 * (42.0f64 / 100.0).atan().to_degrees()
+            - 2.0 * (42.0f64 / 120.0).atan().to_degrees())
+            / 2.0;
         assert!((fx - want_x).abs() < 1e-9 && (fy - want_y).abs() < 1e-9);
         let m = camera_metrics(&pred, &gt).unwrap();
         assert_eq!(m.auc_1, 0.0);
         // e = 4.5: counted from k = 5 on: AUC@5 = 1/5, AUC@10 = 6/10.
-        assert!((m.auc_5 - 20.0).abs() < 1e-6 && (m.auc_10 - 60.0).abs() < 1e-6, "{m:?}");
+        assert!(
+            (m.auc_5 - 20.0).abs() < 1e-6 && (m.auc_10 - 60.0).abs() < 1e-6,
+            "{m:?}"
+        );
     }
 
     #[test]
     fn degenerate_cases() {
         // Zero translation: the official formula gives 90°, never NaN.
         assert!((translation_error_deg(&Vector3::zeros(), &Vector3::x()) - 90.0).abs() < 1e-9);
-        assert_eq!(translation_error_deg(&Vector3::new(f64::NAN, 0.0, 0.0), &Vector3::x()), NON_FINITE_ERROR_DEG);
+        assert_eq!(
+            translation_error_deg(&Vector3::new(f64::NAN, 0.0, 0.0), &Vector3::x()),
+            NON_FINITE_ERROR_DEG
+        );
         // Identical directions give the clamp floor, not exactly 0.
         let e = translation_error_deg(&Vector3::x(), &(Vector3::x() * 5.0));
         assert!(e > 0.0 && e < 1e-5);
@@ -273,24 +347,50 @@ mod tests {
     }
 
     fn floats(st: &safetensors::SafeTensors<'_>, key: &str) -> Vec<f64> {
-        let t = st.tensor(key).unwrap_or_else(|e| panic!("tensor {key}: {e}"));
+        let t = st
+            .tensor(key)
+            .unwrap_or_else(|e| panic!("tensor {key}: {e}"));
         match t.dtype() {
-            safetensors::Dtype::F32 => t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64).collect(),
-            safetensors::Dtype::F64 => {
-                t.data().chunks_exact(8).map(|b| f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]])).collect()
-            }
+            safetensors::Dtype::F32 => t
+                .data()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64)
+                .collect(),
+            safetensors::Dtype::F64 => t
+                .data()
+                .chunks_exact(8)
+                .map(|b| f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]))
+                .collect(),
             d => panic!("{key}: unexpected dtype {d:?}"),
         }
     }
 
-    fn cams(st: &safetensors::SafeTensors<'_>, ext_key: &str, k_key: &str, ext_rows: usize, shared_k: bool) -> Cameras {
+    fn cams(
+        st: &safetensors::SafeTensors<'_>,
+        ext_key: &str,
+        k_key: &str,
+        ext_rows: usize,
+        shared_k: bool,
+    ) -> Cameras {
         let e = floats(st, ext_key);
         let kk = floats(st, k_key);
         let n = e.len() / (ext_rows * 4);
-        let cam_from_world = (0..n).map(|i| Matrix3x4::from_row_slice(&e[i * ext_rows * 4..i * ext_rows * 4 + 12])).collect();
-        let intrinsics =
-            (0..n).map(|i| if shared_k { Matrix3::from_row_slice(&kk[..9]) } else { Matrix3::from_row_slice(&kk[9 * i..9 * i + 9]) }).collect();
-        Cameras { cam_from_world, intrinsics }
+        let cam_from_world = (0..n)
+            .map(|i| Matrix3x4::from_row_slice(&e[i * ext_rows * 4..i * ext_rows * 4 + 12]))
+            .collect();
+        let intrinsics = (0..n)
+            .map(|i| {
+                if shared_k {
+                    Matrix3::from_row_slice(&kk[..9])
+                } else {
+                    Matrix3::from_row_slice(&kk[9 * i..9 * i + 9])
+                }
+            })
+            .collect();
+        Cameras {
+            cam_from_world,
+            intrinsics,
+        }
     }
 
     /// Official `evaluation.eval_cameras` numbers on `sfm_small` (fixture README, "BA" section),
@@ -311,11 +411,18 @@ mod tests {
             let m = camera_metrics(pred, &gt).unwrap();
             let got = [m.auc_1, m.auc_3, m.auc_5, m.auc_10];
             for (g, w) in got.iter().zip(want.iter()) {
-                assert!((g - w).abs() <= 0.05 + 1e-9, "{name}: AUC {got:?} vs official {want:?}");
+                assert!(
+                    (g - w).abs() <= 0.05 + 1e-9,
+                    "{name}: AUC {got:?} vs official {want:?}"
+                );
             }
             let fov = [m.fovx_error_deg, m.fovy_error_deg, m.fov_error_deg];
             for (g, w) in fov.iter().zip(want[4..].iter()) {
-                assert!((g - w).abs() <= 0.005 + 1e-9, "{name}: FoV {fov:?} vs official {:?}", &want[4..]);
+                assert!(
+                    (g - w).abs() <= 0.005 + 1e-9,
+                    "{name}: FoV {fov:?} vs official {:?}",
+                    &want[4..]
+                );
             }
         }
     }

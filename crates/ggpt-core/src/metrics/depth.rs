@@ -52,10 +52,15 @@ pub fn depth_metrics(
     let n_px = mask.len();
     let n_views = gt_cameras.len();
     if n_views == 0 || !n_px.is_multiple_of(n_views) {
-        return Err(CoreError::Invalid(format!("depth metrics: {n_px} pixels for {n_views} GT cameras")));
+        return Err(CoreError::Invalid(format!(
+            "depth metrics: {n_px} pixels for {n_views} GT cameras"
+        )));
     }
     let hw = n_px / n_views;
-    if pred.len() != 3 * n_px || gt_points.len() != 3 * n_px || gt_depth.is_some_and(|d| d.len() != n_px) {
+    if pred.len() != 3 * n_px
+        || gt_points.len() != 3 * n_px
+        || gt_depth.is_some_and(|d| d.len() != n_px)
+    {
         return Err(CoreError::Invalid(format!(
             "depth metrics: prediction {} values, GT points {}, GT depth {:?}, mask {n_px} pixels",
             pred.len(),
@@ -81,10 +86,18 @@ pub fn depth_metrics(
             continue;
         }
         let q = pred.get(3 * p..3 * p + 3).unwrap_or(&[f32::NAN; 3]);
-        let x = gt_from_pred.apply(&Point3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2])));
+        let x = gt_from_pred.apply(&Point3::new(
+            f64::from(q[0]),
+            f64::from(q[1]),
+            f64::from(q[2]),
+        ));
         let d_pred = (r * x.coords + t).z;
         n += 1;
-        rel_sum += if d_pred.is_finite() { (d_gt - d_pred).abs() / (d_gt + REL_EPS) } else { f64::INFINITY };
+        rel_sum += if d_pred.is_finite() {
+            (d_gt - d_pred).abs() / (d_gt + REL_EPS)
+        } else {
+            f64::INFINITY
+        };
         if d_pred.is_finite() && d_pred > 0.0 {
             let ratio = (d_gt / d_pred).max(d_pred / d_gt);
             for (hit, thr) in delta_hits.iter_mut().zip(DELTA_THRESHOLDS) {
@@ -95,7 +108,9 @@ pub fn depth_metrics(
         }
     }
     if n == 0 {
-        return Err(CoreError::Invalid("depth metrics: no pixel with valid GT depth in the mask".into()));
+        return Err(CoreError::Invalid(
+            "depth metrics: no pixel with valid GT depth in the mask".into(),
+        ));
     }
     let pct = |h: usize| 100.0 * h as f64 / n as f64;
     Ok(DepthMetrics {
@@ -115,7 +130,10 @@ mod tests {
 
     /// One identity camera, 4 pixels with GT depths 1, 2, 4, 8 straight ahead.
     fn setup() -> (Cameras, Vec<f32>, Vec<f32>) {
-        let cams = Cameras { cam_from_world: vec![Matrix3x4::identity()], intrinsics: vec![Matrix3::identity()] };
+        let cams = Cameras {
+            cam_from_world: vec![Matrix3x4::identity()],
+            intrinsics: vec![Matrix3::identity()],
+        };
         let depth = vec![1.0f32, 2.0, 4.0, 8.0];
         let pts: Vec<f32> = depth.iter().flat_map(|d| [0.1 * d, -0.2 * d, *d]).collect();
         (cams, pts, depth)
@@ -124,10 +142,21 @@ mod tests {
     #[test]
     fn gt_against_itself_is_perfect() {
         let (cams, pts, depth) = setup();
-        let m = depth_metrics(&pts, &Sim3::identity(), &cams, &pts, Some(&depth), &[true; 4]).unwrap();
+        let m = depth_metrics(
+            &pts,
+            &Sim3::identity(),
+            &cams,
+            &pts,
+            Some(&depth),
+            &[true; 4],
+        )
+        .unwrap();
         assert_eq!(m.num_pixels, 4);
         assert!(m.abs_rel < 1e-6);
-        assert_eq!([m.delta_1_01, m.delta_1_03, m.delta_1_10, m.delta_1_25], [100.0; 4]);
+        assert_eq!(
+            [m.delta_1_01, m.delta_1_03, m.delta_1_10, m.delta_1_25],
+            [100.0; 4]
+        );
         // Depth derived from the GT points gives the same.
         let m2 = depth_metrics(&pts, &Sim3::identity(), &cams, &pts, None, &[true; 4]).unwrap();
         assert_eq!(m, m2);
@@ -139,13 +168,27 @@ mod tests {
         // Predicted depths: 1.005, 2*1.02, 4*1.2, -1 (behind the camera).
         let pred_d = [1.005f32, 2.04, 4.8, -1.0];
         let pred: Vec<f32> = pred_d.iter().flat_map(|d| [0.0, 0.0, *d]).collect();
-        let m = depth_metrics(&pred, &Sim3::identity(), &cams, &gt, Some(&depth), &[true; 4]).unwrap();
+        let m = depth_metrics(
+            &pred,
+            &Sim3::identity(),
+            &cams,
+            &gt,
+            Some(&depth),
+            &[true; 4],
+        )
+        .unwrap();
         assert_eq!(m.delta_1_01, 25.0);
         assert_eq!(m.delta_1_03, 50.0);
         assert_eq!(m.delta_1_10, 50.0);
         assert_eq!(m.delta_1_25, 75.0);
-        let want_rel = (0.005 / (1.0 + 1e-6) + 0.04 / (2.0 + 1e-6) + 0.8 / (4.0 + 1e-6) + 9.0 / (8.0 + 1e-6)) / 4.0;
-        assert!((m.abs_rel - want_rel).abs() < 1e-6, "{} vs {want_rel}", m.abs_rel);
+        let want_rel =
+            (0.005 / (1.0 + 1e-6) + 0.04 / (2.0 + 1e-6) + 0.8 / (4.0 + 1e-6) + 9.0 / (8.0 + 1e-6))
+                / 4.0;
+        assert!(
+            (m.abs_rel - want_rel).abs() < 1e-6,
+            "{} vs {want_rel}",
+            m.abs_rel
+        );
     }
 
     #[test]
@@ -153,9 +196,21 @@ mod tests {
         let (cams, gt, mut depth) = setup();
         // pred = gt / 2 shifted: the alignment x -> 2 x + (0,0,0) restores it.
         let pred: Vec<f32> = gt.iter().map(|v| v / 2.0).collect();
-        let s = Sim3 { scale: 2.0, rotation: Matrix3::identity(), translation: Vector3::zeros() };
+        let s = Sim3 {
+            scale: 2.0,
+            rotation: Matrix3::identity(),
+            translation: Vector3::zeros(),
+        };
         depth[3] = 0.0; // invalid GT depth is skipped
-        let m = depth_metrics(&pred, &s, &cams, &gt, Some(&depth), &[true, true, false, true]).unwrap();
+        let m = depth_metrics(
+            &pred,
+            &s,
+            &cams,
+            &gt,
+            Some(&depth),
+            &[true, true, false, true],
+        )
+        .unwrap();
         assert_eq!(m.num_pixels, 2);
         assert_eq!(m.delta_1_01, 100.0);
         assert!(depth_metrics(&pred, &s, &cams, &gt, Some(&depth), &[false; 4]).is_err());

@@ -57,7 +57,11 @@ pub struct PointEvaluation {
 
 fn point_at(points: &[f32], p: usize) -> Option<Point3<f64>> {
     let s = points.get(3 * p..3 * p + 3)?;
-    Some(Point3::new(f64::from(s[0]), f64::from(s[1]), f64::from(s[2])))
+    Some(Point3::new(
+        f64::from(s[0]),
+        f64::from(s[1]),
+        f64::from(s[2]),
+    ))
 }
 
 /// Evaluates a predicted point map against the ground truth (`pipeline.md` §10.2).
@@ -91,38 +95,73 @@ pub fn point_metrics<R: Rng + ?Sized>(
     if let Some(s) = subset
         && s.len() != n_px
     {
-        return Err(CoreError::Invalid(format!("point_metrics: subset mask has {} pixels, GT mask {n_px}", s.len())));
+        return Err(CoreError::Invalid(format!(
+            "point_metrics: subset mask has {} pixels, GT mask {n_px}",
+            s.len()
+        )));
     }
-    let mask: Vec<bool> =
-        gt_mask.iter().enumerate().map(|(p, &v)| v && subset.is_none_or(|s| s.get(p).copied().unwrap_or(false))).collect();
+    let mask: Vec<bool> = gt_mask
+        .iter()
+        .enumerate()
+        .map(|(p, &v)| v && subset.is_none_or(|s| s.get(p).copied().unwrap_or(false)))
+        .collect();
     let mut src = Vec::new();
     let mut tgt = Vec::new();
     for (p, _) in mask.iter().enumerate().filter(|(_, m)| **m) {
         let (Some(a), Some(b)) = (point_at(pred, p), point_at(gt_points, p)) else {
-            return Err(CoreError::Invalid(format!("point_metrics: pixel {p} out of range")));
+            return Err(CoreError::Invalid(format!(
+                "point_metrics: pixel {p} out of range"
+            )));
         };
         if !a.coords.iter().all(|v| v.is_finite()) {
-            return Err(CoreError::Invalid(format!("point_metrics: non-finite predicted point at pixel {p}")));
+            return Err(CoreError::Invalid(format!(
+                "point_metrics: non-finite predicted point at pixel {p}"
+            )));
         }
         if !b.coords.iter().all(|v| v.is_finite()) {
-            return Err(CoreError::Invalid(format!("point_metrics: non-finite GT point at pixel {p}")));
+            return Err(CoreError::Invalid(format!(
+                "point_metrics: non-finite GT point at pixel {p}"
+            )));
         }
         src.push(a);
         tgt.push(b);
     }
     if src.is_empty() {
-        return Err(CoreError::Invalid("point_metrics: no pixel to evaluate (empty GT mask ∧ subset)".into()));
+        return Err(CoreError::Invalid(
+            "point_metrics: no pixel to evaluate (empty GT mask ∧ subset)".into(),
+        ));
     }
     let (sim3, align) = align_with_retries(&src, &tgt, max_error, rng);
-    let errors_cm: Vec<f64> = src.iter().zip(tgt.iter()).map(|(a, b)| (sim3.apply(a) - b).norm() * CM_PER_M).collect();
+    let errors_cm: Vec<f64> = src
+        .iter()
+        .zip(tgt.iter())
+        .map(|(a, b)| (sim3.apply(a) - b).norm() * CM_PER_M)
+        .collect();
     let n_valid = gt_mask.iter().filter(|&&v| v).count();
-    let ratio = subset.map(|_| if n_valid == 0 { 0.0 } else { src.len() as f64 / n_valid as f64 });
+    let ratio = subset.map(|_| {
+        if n_valid == 0 {
+            0.0
+        } else {
+            src.len() as f64 / n_valid as f64
+        }
+    });
     let metrics = summarize(&errors_cm, ratio, &sim3, &align)?;
-    Ok(PointEvaluation { metrics, sim3, align, errors_cm, mask })
+    Ok(PointEvaluation {
+        metrics,
+        sim3,
+        align,
+        errors_cm,
+        mask,
+    })
 }
 
 /// Summarises per-pixel errors (cm) into [`PointMetrics`].
-fn summarize(errors_cm: &[f64], ratio: Option<f64>, sim3: &Sim3, align: &AlignInfo) -> Result<PointMetrics> {
+fn summarize(
+    errors_cm: &[f64],
+    ratio: Option<f64>,
+    sim3: &Sim3,
+    align: &AlignInfo,
+) -> Result<PointMetrics> {
     let recalls = recalls_strict(errors_cm, POINT_RECALL_MAX_CM);
     let [a1, a3, a5, a10] = AUC_THRESHOLDS;
     let m = sim3.to_matrix3x4();
@@ -160,7 +199,11 @@ mod tests {
         (0..n)
             .flat_map(|i| {
                 let f = i as f32;
-                [(f * 0.37).sin() * 2.0, (f * 0.11).cos() * 1.5, 3.0 + (f * 0.07).sin()]
+                [
+                    (f * 0.37).sin() * 2.0,
+                    (f * 0.11).cos() * 1.5,
+                    3.0 + (f * 0.07).sin(),
+                ]
             })
             .collect()
     }
@@ -220,11 +263,19 @@ mod tests {
         let ev = point_metrics(&pred, &base, &mask, None, 0.03, &mut rng).unwrap();
         assert_eq!(ev.align.num_inliers, Some(100));
         for (j, o) in offsets_cm.iter().enumerate() {
-            assert!((ev.errors_cm[100 + j] - o).abs() < 1e-3, "{} vs {o}", ev.errors_cm[100 + j]);
+            assert!(
+                (ev.errors_cm[100 + j] - o).abs() < 1e-3,
+                "{} vs {o}",
+                ev.errors_cm[100 + j]
+            );
         }
         // 100 of 108 below every k: recall = 100/108 for k = 1..10 (every offset is >= 12 cm).
         let r = 100.0 * 100.0 / 108.0;
-        assert!(ev.metrics.recall_pct.iter().all(|x| (x - r).abs() < 1e-9), "{:?}", ev.metrics.recall_pct);
+        assert!(
+            ev.metrics.recall_pct.iter().all(|x| (x - r).abs() < 1e-9),
+            "{:?}",
+            ev.metrics.recall_pct
+        );
         assert!((ev.metrics.auc_5 - r).abs() < 1e-9);
         let want_mean = offsets_cm.iter().sum::<f64>() / 108.0;
         assert!((ev.metrics.mean_cm - want_mean).abs() < 1e-3);

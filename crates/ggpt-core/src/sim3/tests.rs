@@ -3,7 +3,10 @@ use nalgebra::{Rotation3, Unit};
 use rand::SeedableRng;
 use rand_pcg::Pcg64;
 
-const SFM_SMALL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/fixtures/sfm_small");
+const SFM_SMALL: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../../../shared/fixtures/sfm_small"
+);
 
 fn p(x: f64, y: f64, z: f64) -> Point3<f64> {
     Point3::new(x, y, z)
@@ -14,30 +17,64 @@ fn max_abs_diff(a: &Matrix3x4<f64>, b: &Matrix3x4<f64>) -> f64 {
 }
 
 fn random_sim3(rng: &mut Pcg64) -> Sim3 {
-    let axis = Unit::new_normalize(Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)));
+    let axis = Unit::new_normalize(Vector3::new(
+        rng.random_range(-1.0..1.0),
+        rng.random_range(-1.0..1.0),
+        rng.random_range(-1.0..1.0),
+    ));
     let angle = rng.random_range(-3.0..3.0);
     Sim3 {
         scale: rng.random_range(0.2..5.0),
         rotation: *Rotation3::from_axis_angle(&axis, angle).matrix(),
-        translation: Vector3::new(rng.random_range(-5.0..5.0), rng.random_range(-5.0..5.0), rng.random_range(-5.0..5.0)),
+        translation: Vector3::new(
+            rng.random_range(-5.0..5.0),
+            rng.random_range(-5.0..5.0),
+            rng.random_range(-5.0..5.0),
+        ),
     }
 }
 
 fn random_points(rng: &mut Pcg64, n: usize, spread: f64) -> Vec<Point3<f64>> {
     (0..n)
-        .map(|_| p(rng.random_range(-spread..spread), rng.random_range(-spread..spread), rng.random_range(-spread..spread)))
+        .map(|_| {
+            p(
+                rng.random_range(-spread..spread),
+                rng.random_range(-spread..spread),
+                rng.random_range(-spread..spread),
+            )
+        })
         .collect()
 }
 
 #[test]
 fn spec_test_vector() {
-    let src = [p(0., 0., 0.), p(1., 0., 0.), p(0., 1., 0.), p(0., 0., 1.), p(1., 1., 1.)];
-    let tgt = [p(1., 2., 3.), p(1., 4., 3.), p(-1., 2., 3.), p(1., 2., 5.), p(-1., 4., 5.)];
+    let src = [
+        p(0., 0., 0.),
+        p(1., 0., 0.),
+        p(0., 1., 0.),
+        p(0., 0., 1.),
+        p(1., 1., 1.),
+    ];
+    let tgt = [
+        p(1., 2., 3.),
+        p(1., 4., 3.),
+        p(-1., 2., 3.),
+        p(1., 2., 5.),
+        p(-1., 4., 5.),
+    ];
     let s = umeyama(&src, &tgt).unwrap();
     assert!((s.scale - 2.0).abs() < 1e-12, "scale {}", s.scale);
     let r_want = Matrix3::new(0., -1., 0., 1., 0., 0., 0., 0., 1.);
-    assert!((s.rotation - r_want).abs().max() < 1e-12, "rotation {}", s.rotation);
-    assert!((s.translation - Vector3::new(1., 2., 3.)).abs().max() < 1e-12, "t {}", s.translation);
+    assert!(
+        (s.rotation - r_want).abs().max() < 1e-12,
+        "rotation {}",
+        s.rotation
+    );
+    assert!(
+        (s.translation - Vector3::new(1., 2., 3.)).abs().max() < 1e-12,
+        "t {}",
+        s.translation
+    );
     // The robust estimator on exact data returns the same model with every pair an inlier.
     let mut rng = Pcg64::seed_from_u64(42);
     let r = robust_sim3(&src, &tgt, &RobustSim3Options::default(), &mut rng).unwrap();
@@ -84,8 +121,17 @@ fn reflection_is_never_returned() {
     let tgt: Vec<_> = src.iter().map(|x| p(-x.x, x.y, x.z)).collect();
     let s = umeyama(&src, &tgt).unwrap();
     assert!((s.rotation.determinant() - 1.0).abs() < 1e-12);
-    assert!((s.rotation.transpose() * s.rotation - Matrix3::identity()).abs().max() < 1e-12);
-    assert!(s.scale > 0.0 && s.scale < 1.0, "a reflection cannot be fitted exactly: scale {}", s.scale);
+    assert!(
+        (s.rotation.transpose() * s.rotation - Matrix3::identity())
+            .abs()
+            .max()
+            < 1e-12
+    );
+    assert!(
+        s.scale > 0.0 && s.scale < 1.0,
+        "a reflection cannot be fitted exactly: scale {}",
+        s.scale
+    );
     // Planar source mirrored across its own plane: a rotation by 180° fits exactly.
     let planar: Vec<_> = src.iter().map(|x| p(x.x, x.y, 0.0)).collect();
     let mirrored: Vec<_> = planar.iter().map(|x| p(x.x, -x.y, 0.0)).collect();
@@ -109,11 +155,18 @@ fn robust_to_thirty_percent_outliers() {
         for i in 0..n {
             if rng.random_bool(0.3) {
                 is_outlier[i] = true;
-                tgt[i] += Vector3::new(rng.random_range(1.0..3.0), rng.random_range(-3.0..3.0), rng.random_range(-3.0..3.0));
+                tgt[i] += Vector3::new(
+                    rng.random_range(1.0..3.0),
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(-3.0..3.0),
+                );
             }
         }
         let res = robust_sim3(&src, &tgt, &RobustSim3Options::default(), &mut rng).unwrap();
-        assert!(max_abs_diff(&res.sim3.to_matrix3x4(), &truth.to_matrix3x4()) < 1e-9, "round {round}");
+        assert!(
+            max_abs_diff(&res.sim3.to_matrix3x4(), &truth.to_matrix3x4()) < 1e-9,
+            "round {round}"
+        );
         let want: Vec<bool> = is_outlier.iter().map(|o| !o).collect();
         assert_eq!(res.inliers, want, "round {round}");
         assert_eq!(res.num_inliers, want.iter().filter(|b| **b).count());
@@ -133,14 +186,27 @@ fn noisy_inliers_use_local_optimisation() {
     let tgt: Vec<_> = src
         .iter()
         .map(|x| {
-            let noise = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)) * 0.005;
+            let noise = Vector3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            ) * 0.005;
             truth.apply(x) + noise
         })
         .collect();
-    let res = robust_sim3(&src, &tgt, &RobustSim3Options::with_max_error(0.03 * truth.scale), &mut rng).unwrap();
+    let res = robust_sim3(
+        &src,
+        &tgt,
+        &RobustSim3Options::with_max_error(0.03 * truth.scale),
+        &mut rng,
+    )
+    .unwrap();
     assert!(res.num_local_refits >= 1);
     assert!(res.num_inliers > n * 95 / 100, "{}", res.num_inliers);
-    assert!(max_abs_diff(&res.sim3.to_matrix3x4(), &truth.to_matrix3x4()) < 2e-3 * truth.scale.max(1.0) * 5.0);
+    assert!(
+        max_abs_diff(&res.sim3.to_matrix3x4(), &truth.to_matrix3x4())
+            < 2e-3 * truth.scale.max(1.0) * 5.0
+    );
 }
 
 #[test]
@@ -158,7 +224,14 @@ fn degenerate_inputs_fail() {
     assert!(robust_sim3(&two, &two, &RobustSim3Options::default(), &mut rng).is_err());
     assert!(robust_sim3(&same, &same, &RobustSim3Options::default(), &mut rng).is_err());
     assert!(robust_sim3(&a, &a[..2], &RobustSim3Options::default(), &mut rng).is_err());
-    assert!(Sim3 { scale: 0.0, ..Sim3::identity() }.inverse().is_err());
+    assert!(
+        Sim3 {
+            scale: 0.0,
+            ..Sim3::identity()
+        }
+        .inverse()
+        .is_err()
+    );
 }
 
 #[test]
@@ -199,7 +272,13 @@ fn noise_needs_a_larger_threshold() {
     let src = random_points(&mut rng, 8, 1.0);
     let tgt: Vec<_> = src
         .iter()
-        .map(|x| x + Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)) * 0.4)
+        .map(|x| {
+            x + Vector3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            ) * 0.4
+        })
         .collect();
     let (_, info) = align_with_retries(&src, &tgt, 0.03, &mut rng);
     match info.method {
@@ -225,20 +304,31 @@ fn read_bytes(path: &str) -> Vec<u8> {
     std::fs::read(path).unwrap_or_else(|e| panic!("fixture {path} missing or unreadable: {e}"))
 }
 
-fn tensor<'a>(st: &'a safetensors::SafeTensors<'a>, file: &str, key: &str) -> safetensors::tensor::TensorView<'a> {
-    st.tensor(key).unwrap_or_else(|e| panic!("{file}: tensor {key}: {e}"))
+fn tensor<'a>(
+    st: &'a safetensors::SafeTensors<'a>,
+    file: &str,
+    key: &str,
+) -> safetensors::tensor::TensorView<'a> {
+    st.tensor(key)
+        .unwrap_or_else(|e| panic!("{file}: tensor {key}: {e}"))
 }
 
 fn f32s(st: &safetensors::SafeTensors<'_>, file: &str, key: &str) -> Vec<f32> {
     let t = tensor(st, file, key);
     assert_eq!(t.dtype(), safetensors::Dtype::F32, "{file}: {key}");
-    t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+    t.data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
 }
 
 fn f64s(st: &safetensors::SafeTensors<'_>, file: &str, key: &str) -> Vec<f64> {
     let t = tensor(st, file, key);
     assert_eq!(t.dtype(), safetensors::Dtype::F64, "{file}: {key}");
-    t.data().chunks_exact(8).map(|b| f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]])).collect()
+    t.data()
+        .chunks_exact(8)
+        .map(|b| f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]))
+        .collect()
 }
 
 fn bools(st: &safetensors::SafeTensors<'_>, file: &str, key: &str) -> Vec<bool> {
@@ -304,11 +394,21 @@ fn sfm_small_robust_sim3_matches_official() {
     // The official inlier mask is `residual <= max_error^2` under the official transform.
     let m3 = fx.tgt_from_src.fixed_view::<3, 3>(0, 0).into_owned();
     let scale = m3.determinant().cbrt();
-    let official = Sim3 { scale, rotation: m3 / scale, translation: fx.tgt_from_src.column(3).into_owned() };
-    let official_inliers: Vec<bool> =
-        src.iter().zip(tgt.iter()).map(|(a, b)| (official.apply(a) - b).norm_squared() <= 0.03 * 0.03).collect();
+    let official = Sim3 {
+        scale,
+        rotation: m3 / scale,
+        translation: fx.tgt_from_src.column(3).into_owned(),
+    };
+    let official_inliers: Vec<bool> = src
+        .iter()
+        .zip(tgt.iter())
+        .map(|(a, b)| (official.apply(a) - b).norm_squared() <= 0.03 * 0.03)
+        .collect();
     assert_eq!(official_inliers, fx.inlier_mask);
-    assert_eq!(official_inliers.iter().filter(|b| **b).count(), OFFICIAL_INLIERS);
+    assert_eq!(
+        official_inliers.iter().filter(|b| **b).count(),
+        OFFICIAL_INLIERS
+    );
 
     let mut within_tolerance = 0;
     let seeds = 0u64..10;
@@ -317,7 +417,10 @@ fn sfm_small_robust_sim3_matches_official() {
         let mut rng = Pcg64::seed_from_u64(seed);
         let res = robust_sim3(&src, &tgt, &RobustSim3Options::default(), &mut rng).unwrap();
         let diff = max_abs_diff(&res.sim3.to_matrix3x4(), &fx.tgt_from_src);
-        assert!(diff < MATRIX_BOUND, "seed {seed}: max |delta matrix| {diff}");
+        assert!(
+            diff < MATRIX_BOUND,
+            "seed {seed}: max |delta matrix| {diff}"
+        );
         if diff < MATRIX_TOLERANCE {
             within_tolerance += 1;
         }
@@ -327,9 +430,15 @@ fn sfm_small_robust_sim3_matches_official() {
             res.num_inliers
         );
         assert_eq!(res.inliers.iter().filter(|b| **b).count(), res.num_inliers);
-        assert_eq!(res.num_trials, 20, "dynamic stopping needs ~30 trials at a 72% inlier ratio");
+        assert_eq!(
+            res.num_trials, 20,
+            "dynamic stopping needs ~30 trials at a 72% inlier ratio"
+        );
     }
-    assert!(within_tolerance * 3 >= num_seeds, "only {within_tolerance}/{num_seeds} seeds within {MATRIX_TOLERANCE}");
+    assert!(
+        within_tolerance * 3 >= num_seeds,
+        "only {within_tolerance}/{num_seeds} seeds within {MATRIX_TOLERANCE}"
+    );
 }
 
 #[test]
@@ -340,10 +449,16 @@ fn sfm_small_f32_application_is_bit_exact() {
     let mut pts = fx.ff_points.clone();
     apply_matrix_f32(&fx.sim3d_mat_f32, &mut pts);
     assert_eq!(pts.len(), fx.ff_aligned.len());
-    let mismatches = pts.iter().zip(fx.ff_aligned.iter()).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
-    assert_eq!(mismatches, 0, "f32 application differs from sim3/ff_aligned");
+    let mismatches = pts
+        .iter()
+        .zip(fx.ff_aligned.iter())
+        .filter(|(a, b)| a.to_bits() != b.to_bits())
+        .count();
+    assert_eq!(
+        mismatches, 0,
+        "f32 application differs from sim3/ff_aligned"
+    );
 }
-
 
 #[test]
 fn rank_deficient_samples_are_rejected_like_colmap() {
@@ -351,7 +466,10 @@ fn rank_deficient_samples_are_rejected_like_colmap() {
     // whole set) has rank 2, so COLMAP's estimator yields no model; plain Umeyama (centred) works.
     let mut rng = Pcg64::seed_from_u64(8);
     let truth = random_sim3(&mut rng);
-    let src: Vec<_> = random_points(&mut rng, 50, 1.0).into_iter().map(|q| p(q.x, q.y, 0.0)).collect();
+    let src: Vec<_> = random_points(&mut rng, 50, 1.0)
+        .into_iter()
+        .map(|q| p(q.x, q.y, 0.0))
+        .collect();
     let tgt: Vec<_> = src.iter().map(|x| truth.apply(x)).collect();
     assert!(robust_sim3(&src, &tgt, &RobustSim3Options::default(), &mut rng).is_err());
     let (s, info) = align_with_retries(&src, &tgt, 0.03, &mut rng);

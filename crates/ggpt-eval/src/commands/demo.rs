@@ -2,12 +2,11 @@
 //! directory, evaluate its feed-forward prediction (and GT against itself as a sanity line).
 
 use std::path::{Path, PathBuf};
-use std::time::Duration;
 
 use anyhow::{Context, Result};
+use ggpt_cli::SyncStageBars;
 use ggpt_core::io::scene_dir::{read_scene, write_scene};
-use ggpt_synth::{SceneKind, Stage, SynthConfig, generate_with_progress};
-use indicatif::{ProgressBar, ProgressStyle};
+use ggpt_synth::{SceneKind, SynthConfig, generate_with_progress};
 
 use ggpt_core::io::atomic::write_json_atomic;
 use ggpt_eval::report::{CameraSource, EvalReport, PredSource, evaluate_scene, format_table};
@@ -40,15 +39,6 @@ pub struct DemoOutput {
     pub reports: Vec<(PathBuf, EvalReport)>,
 }
 
-fn progress_bar() -> ProgressBar {
-    let pb = ProgressBar::new(0);
-    let style = ProgressStyle::with_template("{spinner} {msg:<28} [{elapsed_precise}] {bar:30} {pos}/{len}")
-        .unwrap_or_else(|_| ProgressStyle::default_bar());
-    pb.set_style(style);
-    pb.enable_steady_tick(Duration::from_millis(200));
-    pb
-}
-
 /// Runs the demo: generate, write, read back, evaluate ff and GT, write the JSON reports.
 pub fn run_demo(opts: &DemoOptions) -> Result<DemoOutput> {
     let cfg = SynthConfig {
@@ -60,24 +50,24 @@ pub fn run_demo(opts: &DemoOptions) -> Result<DemoOutput> {
         matches: opts.with_matches,
         ..SynthConfig::default()
     };
-    let pb = progress_bar();
-    let progress = |stage: Stage, ticks: u64| {
-        if ticks > 0 {
-            pb.set_message(format!("synthesising: {stage:?}"));
-            pb.set_length(ticks);
-            pb.set_position(0);
-        } else {
-            pb.inc(1);
-        }
-    };
-    let synth = generate_with_progress(&cfg, &progress).context("generating the synthetic scene")?;
-    pb.finish_and_clear();
-    tracing::info!("generated {} ({} views, {}x{})", synth.scene.name, opts.views, opts.width, opts.height);
+    let bars = SyncStageBars::new();
+    let synth = generate_with_progress(&cfg, &|p| bars.report(p))
+        .context("generating the synthetic scene")?;
+    bars.finish();
+    tracing::info!(
+        "generated {} ({} views, {}x{})",
+        synth.scene.name,
+        opts.views,
+        opts.width,
+        opts.height
+    );
 
     let scene_dir = opts.out.join("scene");
-    write_scene(&scene_dir, &synth.scene).with_context(|| format!("writing {}", scene_dir.display()))?;
+    write_scene(&scene_dir, &synth.scene)
+        .with_context(|| format!("writing {}", scene_dir.display()))?;
     // Evaluate what is on disk (exercises the reader as a user would).
-    let scene = read_scene(&scene_dir).with_context(|| format!("reading back {}", scene_dir.display()))?;
+    let scene =
+        read_scene(&scene_dir).with_context(|| format!("reading back {}", scene_dir.display()))?;
 
     let mut reports = Vec::new();
     for (pred, cams, file) in [

@@ -21,9 +21,15 @@ pub fn all() -> Vec<Box<dyn Target>> {
         Box::new(core_formats::SceneDir),
         Box::new(core_formats::OfficialBin),
         Box::new(model_formats::ChunkRecord),
-        Box::new(model_formats::Weights::new(model_formats::WeightsFormat::Safetensors)),
-        Box::new(model_formats::Weights::new(model_formats::WeightsFormat::Pth)),
-        Box::new(model_formats::Weights::new(model_formats::WeightsFormat::Burnpack)),
+        Box::new(model_formats::Weights::new(
+            model_formats::WeightsFormat::Safetensors,
+        )),
+        Box::new(model_formats::Weights::new(
+            model_formats::WeightsFormat::Pth,
+        )),
+        Box::new(model_formats::Weights::new(
+            model_formats::WeightsFormat::Burnpack,
+        )),
         Box::new(model_formats::ModelConfigJson),
         Box::new(model_formats::InferenceJson),
         Box::new(train_formats::ChunkSetDir),
@@ -57,14 +63,28 @@ pub fn seed_files_of(dir: &Path) -> Result<Vec<SeedFile>> {
     let mut out = Vec::new();
     let mut stack: Vec<PathBuf> = vec![dir.to_path_buf()];
     while let Some(d) = stack.pop() {
-        let entries = std::fs::read_dir(&d).map_err(|e| FuzzError::Io { path: d.clone(), source: e })?;
+        let entries = std::fs::read_dir(&d).map_err(|e| FuzzError::Io {
+            path: d.clone(),
+            source: e,
+        })?;
         for e in entries {
-            let path = e.map_err(|e| FuzzError::Io { path: d.clone(), source: e })?.path();
+            let path = e
+                .map_err(|e| FuzzError::Io {
+                    path: d.clone(),
+                    source: e,
+                })?
+                .path();
             if path.is_dir() {
                 stack.push(path);
             } else {
-                let bytes = std::fs::read(&path).map_err(|e| FuzzError::Io { path: path.clone(), source: e })?;
-                let rel = path.strip_prefix(dir).map_err(|_| FuzzError::Seed { target: String::new(), message: format!("{} outside {}", path.display(), dir.display()) })?;
+                let bytes = std::fs::read(&path).map_err(|e| FuzzError::Io {
+                    path: path.clone(),
+                    source: e,
+                })?;
+                let rel = path.strip_prefix(dir).map_err(|_| FuzzError::Seed {
+                    target: String::new(),
+                    message: format!("{} outside {}", path.display(), dir.display()),
+                })?;
                 out.push(SeedFile::new(rel.to_path_buf(), bytes));
             }
         }
@@ -74,9 +94,18 @@ pub fn seed_files_of(dir: &Path) -> Result<Vec<SeedFile>> {
 }
 
 /// Runs `write(dir)` in a fresh temporary folder and returns what it wrote.
-pub fn seed_from_writer(target: &str, write: impl FnOnce(&Path) -> std::result::Result<(), String>) -> Result<Vec<SeedFile>> {
-    let tmp = tempfile::tempdir().map_err(|e| FuzzError::Io { path: std::env::temp_dir(), source: e })?;
-    write(tmp.path()).map_err(|message| FuzzError::Seed { target: target.to_string(), message })?;
+pub fn seed_from_writer(
+    target: &str,
+    write: impl FnOnce(&Path) -> std::result::Result<(), String>,
+) -> Result<Vec<SeedFile>> {
+    let tmp = tempfile::tempdir().map_err(|e| FuzzError::Io {
+        path: std::env::temp_dir(),
+        source: e,
+    })?;
+    write(tmp.path()).map_err(|message| FuzzError::Seed {
+        target: target.to_string(),
+        message,
+    })?;
     seed_files_of(tmp.path())
 }
 

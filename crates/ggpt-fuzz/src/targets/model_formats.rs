@@ -16,7 +16,10 @@ use crate::harness::{SeedFile, Target, fingerprint_debug};
 use crate::{FuzzError, Result};
 
 fn seed_err(target: &str, message: impl std::fmt::Display) -> FuzzError {
-    FuzzError::Seed { target: target.to_string(), message: message.to_string() }
+    FuzzError::Seed {
+        target: target.to_string(),
+        message: message.to_string(),
+    }
 }
 
 /// The CPU device the model targets load onto.
@@ -30,7 +33,9 @@ pub fn model_fingerprint(model: &Ggpt) -> std::result::Result<u64, String> {
     for t in model.collect(None, None, false) {
         t.name.hash(&mut h);
         t.shape.iter().copied().collect::<Vec<usize>>().hash(&mut h);
-        t.to_bytes().map_err(|e| format!("tensor {}: {e:?}", t.name))?.hash(&mut h);
+        t.to_bytes()
+            .map_err(|e| format!("tensor {}: {e:?}", t.name))?
+            .hash(&mut h);
     }
     Ok(h.finish())
 }
@@ -51,15 +56,29 @@ impl Target for ChunkRecord {
         for (c, k) in [(0usize, 12usize), (1, 7)] {
             let pts: Vec<f32> = (0..3 * k).map(|i| (i as f32 * 0.37).sin()).collect();
             w.f32(&format!("chunk{c}/ff_pts"), &[k, 3], &pts);
-            w.f32(&format!("chunk{c}/ff_pts_conf"), &[k], &(0..k).map(|i| 1.0 + i as f32).collect::<Vec<_>>());
-            w.f32(&format!("chunk{c}/geo_pts"), &[k, 3], &pts.iter().map(|x| x * 0.9).collect::<Vec<_>>());
-            w.bool(&format!("chunk{c}/geo_msks"), &[k], &(0..k).map(|i| i % 2 == 0).collect::<Vec<_>>());
+            w.f32(
+                &format!("chunk{c}/ff_pts_conf"),
+                &[k],
+                &(0..k).map(|i| 1.0 + i as f32).collect::<Vec<_>>(),
+            );
+            w.f32(
+                &format!("chunk{c}/geo_pts"),
+                &[k, 3],
+                &pts.iter().map(|x| x * 0.9).collect::<Vec<_>>(),
+            );
+            w.bool(
+                &format!("chunk{c}/geo_msks"),
+                &[k],
+                &(0..k).map(|i| i % 2 == 0).collect::<Vec<_>>(),
+            );
         }
         let bytes = w.finish(path, None).map_err(|e| seed_err(self.name(), e))?;
         Ok(vec![SeedFile::new(path, bytes)])
     }
     fn read(&self, dir: &Path) -> std::result::Result<u64, String> {
-        ggpt_model::chunk_io::read_chunk_inputs(&dir.join("chunks.safetensors")).map(|c| fingerprint_debug(&c)).map_err(|e| err_text(&e))
+        ggpt_model::chunk_io::read_chunk_inputs(&dir.join("chunks.safetensors"))
+            .map(|c| fingerprint_debug(&c))
+            .map_err(|e| err_text(&e))
     }
 }
 
@@ -84,7 +103,10 @@ pub struct Weights {
 impl Weights {
     /// The target of `format`.
     pub fn new(format: WeightsFormat) -> Self {
-        Self { format, template: Mutex::new(None) }
+        Self {
+            format,
+            template: Mutex::new(None),
+        }
     }
 
     fn file_name(&self) -> &'static str {
@@ -96,7 +118,10 @@ impl Weights {
     }
 
     fn template(&self) -> std::result::Result<Ggpt, String> {
-        let mut t = self.template.lock().map_err(|_| "template lock poisoned".to_string())?;
+        let mut t = self
+            .template
+            .lock()
+            .map_err(|_| "template lock poisoned".to_string())?;
         if t.is_none() {
             let device = cpu_device()?;
             device.seed(3);
@@ -113,8 +138,19 @@ fn pth_bytes(model: &Ggpt) -> std::result::Result<Vec<u8>, String> {
     let entries: Vec<(&str, TorchValue)> = dict
         .iter()
         .map(|(name, dtype, shape, bytes)| {
-            let (storage, size) = if *dtype == safetensors::Dtype::I64 { ("LongStorage", 8) } else { ("FloatStorage", 4) };
-            let value = TorchValue::Tensor { storage, bytes: bytes.clone(), numel: bytes.len() / size, offset: 0, size: shape.clone(), stride: contiguous_strides(shape) };
+            let (storage, size) = if *dtype == safetensors::Dtype::I64 {
+                ("LongStorage", 8)
+            } else {
+                ("FloatStorage", 4)
+            };
+            let value = TorchValue::Tensor {
+                storage,
+                bytes: bytes.clone(),
+                numel: bytes.len() / size,
+                offset: 0,
+                size: shape.clone(),
+                stride: contiguous_strides(shape),
+            };
             (name.as_str(), value)
         })
         .collect();
@@ -142,15 +178,23 @@ impl Target for Weights {
         seed_from_writer(self.name(), |dir| {
             let path = dir.join(file);
             match format {
-                WeightsFormat::Safetensors => ggpt_train::export::save_official_safetensors(&model, 5, &path).map_err(|e| e.to_string()),
-                WeightsFormat::Pth => std::fs::write(&path, pth_bytes(&model)?).map_err(|e| e.to_string()),
-                WeightsFormat::Burnpack => ggpt_model::weights::save_burnpack(&model, &path).map_err(|e| e.to_string()),
+                WeightsFormat::Safetensors => {
+                    ggpt_train::export::save_official_safetensors(&model, 5, &path)
+                        .map_err(|e| e.to_string())
+                }
+                WeightsFormat::Pth => {
+                    std::fs::write(&path, pth_bytes(&model)?).map_err(|e| e.to_string())
+                }
+                WeightsFormat::Burnpack => {
+                    ggpt_model::weights::save_burnpack(&model, &path).map_err(|e| e.to_string())
+                }
             }
         })
     }
     fn read(&self, dir: &Path) -> std::result::Result<u64, String> {
         let model = self.template()?;
-        let loaded = ggpt_model::weights::load_checkpoint(model, &dir.join(self.file_name())).map_err(|e| err_text(&e))?;
+        let loaded = ggpt_model::weights::load_checkpoint(model, &dir.join(self.file_name()))
+            .map_err(|e| err_text(&e))?;
         model_fingerprint(&loaded)
     }
 }
@@ -166,10 +210,18 @@ impl Target for ModelConfigJson {
         "`model_config.json`"
     }
     fn seed(&self) -> Result<Vec<SeedFile>> {
-        seed_from_writer(self.name(), |dir| ggpt_train::export::save_model_config(&GgptConfig::small(), &dir.join("model_config.json")).map_err(|e| e.to_string()))
+        seed_from_writer(self.name(), |dir| {
+            ggpt_train::export::save_model_config(
+                &GgptConfig::small(),
+                &dir.join("model_config.json"),
+            )
+            .map_err(|e| e.to_string())
+        })
     }
     fn read(&self, dir: &Path) -> std::result::Result<u64, String> {
-        GgptConfig::from_json_file(&dir.join("model_config.json")).map(|c| fingerprint_debug(&c)).map_err(|e| err_text(&e))
+        GgptConfig::from_json_file(&dir.join("model_config.json"))
+            .map(|c| fingerprint_debug(&c))
+            .map_err(|e| err_text(&e))
     }
 }
 
@@ -185,12 +237,19 @@ impl Target for InferenceJson {
     }
     fn seed(&self) -> Result<Vec<SeedFile>> {
         let settings = ggpt_model::model_dir::InferenceSettings {
-            chunking: Some(ggpt_core::chunking::ChunkingSettings { chunk_size: Some(0.25), max_pixels: Some(40_000), min_dlt: Some(50), min_pixels: Some(2_000) }),
+            chunking: Some(ggpt_core::chunking::ChunkingSettings {
+                chunk_size: Some(0.25),
+                max_pixels: Some(40_000),
+                min_dlt: Some(50),
+                min_pixels: Some(2_000),
+            }),
         };
         let text = serde_json::to_string_pretty(&settings).map_err(|e| seed_err(self.name(), e))?;
         Ok(vec![SeedFile::new("inference.json", text.into_bytes())])
     }
     fn read(&self, dir: &Path) -> std::result::Result<u64, String> {
-        ggpt_model::model_dir::read_inference_settings(&dir.join("inference.json")).map(|s| fingerprint_debug(&s)).map_err(|e| err_text(&e))
+        ggpt_model::model_dir::read_inference_settings(&dir.join("inference.json"))
+            .map(|s| fingerprint_debug(&s))
+            .map_err(|e| err_text(&e))
     }
 }

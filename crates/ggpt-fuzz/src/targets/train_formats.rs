@@ -6,8 +6,12 @@ use std::path::Path;
 
 use burn::module::Module;
 use ggpt_model::{Ggpt, GgptConfig};
-use ggpt_train::chunkset::{ChunkSet, ChunkSetWriter, SceneEntry, Split, TrainChunk, parse_shard, shard_bytes};
-use ggpt_train::trainer::{LrSchedule, TrainOptions, TrainState, adam, load_checkpoint, save_checkpoint, train_step};
+use ggpt_train::chunkset::{
+    ChunkSet, ChunkSetWriter, SceneEntry, Split, TrainChunk, parse_shard, shard_bytes,
+};
+use ggpt_train::trainer::{
+    LrSchedule, TrainOptions, TrainState, adam, load_checkpoint, save_checkpoint, train_step,
+};
 
 use super::model_formats::model_fingerprint;
 use super::{err_text, seed_from_writer};
@@ -19,7 +23,15 @@ fn chunk(scene: usize, k: usize, salt: u32) -> TrainChunk {
 }
 
 fn scene(name: &str, split: Split) -> SceneEntry {
-    SceneEntry { name: name.into(), split, views: 2, height: 12, width: 16, metres_per_unit: 2.0, source: "ggpt-fuzz".into() }
+    SceneEntry {
+        name: name.into(),
+        split,
+        views: 2,
+        height: 12,
+        width: 16,
+        metres_per_unit: 2.0,
+        source: "ggpt-fuzz".into(),
+    }
 }
 
 /// A chunk-set folder: manifest and three shards (`ChunkSet::open` + `load_split`).
@@ -35,7 +47,8 @@ impl Target for ChunkSetDir {
     fn seed(&self) -> Result<Vec<SeedFile>> {
         seed_from_writer(self.name(), |dir| {
             let e = |e: ggpt_train::TrainError| e.to_string();
-            let mut w = ChunkSetWriter::new(dir, 2, serde_json::json!({"made_by": "ggpt-fuzz"})).map_err(e)?;
+            let mut w = ChunkSetWriter::new(dir, 2, serde_json::json!({"made_by": "ggpt-fuzz"}))
+                .map_err(e)?;
             let a = w.add_scene(scene("a", Split::Train));
             let v = w.add_scene(scene("v", Split::Val));
             for k in 0..3 {
@@ -65,13 +78,19 @@ impl Target for Shard {
         "chunk-set shard safetensors, parsed without its CRC check"
     }
     fn seed(&self) -> Result<Vec<SeedFile>> {
-        let bytes = shard_bytes(&[chunk(0, 9, 1), chunk(1, 5, 2)]).map_err(|e| crate::FuzzError::Seed { target: self.name().into(), message: e.to_string() })?;
+        let bytes =
+            shard_bytes(&[chunk(0, 9, 1), chunk(1, 5, 2)]).map_err(|e| crate::FuzzError::Seed {
+                target: self.name().into(),
+                message: e.to_string(),
+            })?;
         Ok(vec![SeedFile::new("shard.safetensors", bytes)])
     }
     fn read(&self, dir: &Path) -> std::result::Result<u64, String> {
         let path = dir.join("shard.safetensors");
         let bytes = std::fs::read(&path).map_err(|e| format!("{}: {e}", path.display()))?;
-        parse_shard(&bytes, &path, 2).map(|c| fingerprint_debug(&c)).map_err(|e| err_text(&e))
+        parse_shard(&bytes, &path, 2)
+            .map(|c| fingerprint_debug(&c))
+            .map_err(|e| err_text(&e))
     }
 }
 
@@ -113,7 +132,9 @@ fn options() -> TrainOptions {
 }
 
 fn autodiff_cpu() -> std::result::Result<burn::tensor::Device, String> {
-    Ok(ggpt_model::device::device_from_name("ndarray").map_err(|e| e.to_string())?.autodiff())
+    Ok(ggpt_model::device::device_from_name("ndarray")
+        .map_err(|e| e.to_string())?
+        .autodiff())
 }
 
 impl Target for Checkpoint {
@@ -124,7 +145,10 @@ impl Target for Checkpoint {
         "training checkpoint (`model.bpk`, `optim.bpk`, `state.json`)"
     }
     fn seed(&self) -> Result<Vec<SeedFile>> {
-        let tmp = tempfile::tempdir().map_err(|e| crate::FuzzError::Io { path: std::env::temp_dir(), source: e })?;
+        let tmp = tempfile::tempdir().map_err(|e| crate::FuzzError::Io {
+            path: std::env::temp_dir(),
+            source: e,
+        })?;
         let dir = (|| -> std::result::Result<std::path::PathBuf, String> {
             let o = options();
             let device = autodiff_cpu()?;
@@ -133,17 +157,37 @@ impl Target for Checkpoint {
             let model = Ggpt::new(&o.model, &plain).fork(&device).train();
             let mut optim = adam();
             let c = chunk(0, 40, 3);
-            let (model, _) = train_step(model, &mut optim, &o.model, &[&c], o.lr, o.clip_grad_norm, &device).map_err(|e| e.to_string())?;
-            let state = TrainState { step: 1, options: o, rng: "per-step seeds".into(), data: "chunks".into(), last_validation: None };
+            let (model, _) = train_step(
+                model,
+                &mut optim,
+                &o.model,
+                &[&c],
+                o.lr,
+                o.clip_grad_norm,
+                &device,
+            )
+            .map_err(|e| e.to_string())?;
+            let state = TrainState {
+                step: 1,
+                options: o,
+                rng: "per-step seeds".into(),
+                data: "chunks".into(),
+                last_validation: None,
+            };
             save_checkpoint(tmp.path(), &model, &optim, &state).map_err(|e| e.to_string())
         })()
-        .map_err(|message| crate::FuzzError::Seed { target: self.name().into(), message })?;
+        .map_err(|message| crate::FuzzError::Seed {
+            target: self.name().into(),
+            message,
+        })?;
         super::seed_files_of(&dir)
     }
     fn read(&self, dir: &Path) -> std::result::Result<u64, String> {
         let device = autodiff_cpu()?;
         let (model, _optim, state) = load_checkpoint(dir, &device).map_err(|e| err_text(&e))?;
-        Ok(fingerprint_debug(&(model_fingerprint(&model.valid())?, state)))
+        Ok(fingerprint_debug(&(
+            model_fingerprint(&model.valid())?,
+            state,
+        )))
     }
 }
-

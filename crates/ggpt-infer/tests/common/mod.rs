@@ -10,20 +10,33 @@ use std::process::Command;
 
 /// `scripts/NAME` of the workspace.
 pub fn script(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../scripts").join(name)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../scripts")
+        .join(name)
 }
 
 /// `true` when `python3 -c "import numpy, MODULE"` works. Otherwise fails the test under
 /// `GGPT_REQUIRE_PYTHON_READERS=1`, or warns loudly (what was not checked) and returns `false`.
 pub fn python_module_available(test: &str, module: &str, pip: &str, unchecked: &str) -> bool {
-    let probe = Command::new("python3").args(["-c", &format!("import numpy, {module}")]).output();
+    let probe = Command::new("python3")
+        .args(["-c", &format!("import numpy, {module}")])
+        .output();
     let problem = match &probe {
         Ok(o) if o.status.success() => return true,
-        Ok(o) => format!("`python3 -c \"import numpy, {module}\"` failed: {}", String::from_utf8_lossy(&o.stderr).lines().last().unwrap_or("").trim()),
+        Ok(o) => format!(
+            "`python3 -c \"import numpy, {module}\"` failed: {}",
+            String::from_utf8_lossy(&o.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
+                .trim()
+        ),
         Err(e) => format!("cannot run python3: {e}"),
     };
     if std::env::var("GGPT_REQUIRE_PYTHON_READERS").as_deref() == Ok("1") {
-        panic!("{test}: GGPT_REQUIRE_PYTHON_READERS=1 but {module} is not usable: {problem} (install it with `pip install {pip}`)");
+        panic!(
+            "{test}: GGPT_REQUIRE_PYTHON_READERS=1 but {module} is not usable: {problem} (install it with `pip install {pip}`)"
+        );
     }
     // written to the stderr handle directly: libtest's capture only intercepts `eprintln!`
     let bar = "!".repeat(88);
@@ -36,7 +49,11 @@ pub fn python_module_available(test: &str, module: &str, pip: &str, unchecked: &
 
 /// Runs `python3 scripts/SCRIPT path`, asserts exit 0 and returns the printed JSON.
 pub fn run_python_check(script_name: &str, path: &Path) -> serde_json::Value {
-    let out = Command::new("python3").arg(script(script_name)).arg(path).output().expect("running python3");
+    let out = Command::new("python3")
+        .arg(script(script_name))
+        .arg(path)
+        .output()
+        .expect("running python3");
     assert!(
         out.status.success(),
         "{script_name} {} failed ({}):\nstdout: {}\nstderr: {}",
@@ -45,18 +62,34 @@ pub fn run_python_check(script_name: &str, path: &Path) -> serde_json::Value {
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );
-    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{script_name} printed no JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "{script_name} printed no JSON ({e}): {}",
+            String::from_utf8_lossy(&out.stdout)
+        )
+    })
 }
 
 /// Saves a freshly initialised `GgptConfig::tiny()` network (random weights) as burnpack at
 /// `path`.
 pub fn save_tiny_weights(path: &Path) {
     let device = ggpt_model::device::device_from_name("ndarray").unwrap();
-    ggpt_model::weights::save_burnpack(&ggpt_model::Ggpt::new(&ggpt_model::GgptConfig::tiny(), &device), path).unwrap();
+    ggpt_model::weights::save_burnpack(
+        &ggpt_model::Ggpt::new(&ggpt_model::GgptConfig::tiny(), &device),
+        path,
+    )
+    .unwrap();
 }
 
 /// A 3-view 56 x 42 `ggpt-synth` room with simulated matches (no SfM result), from `seed`.
 pub fn tiny_scene(seed: u64) -> ggpt_core::Scene {
-    let cfg = ggpt_synth::SynthConfig { views: 3, width: 56, height: 42, seed, matches: true, ..ggpt_synth::SynthConfig::default() };
+    let cfg = ggpt_synth::SynthConfig {
+        views: 3,
+        width: 56,
+        height: 42,
+        seed,
+        matches: true,
+        ..ggpt_synth::SynthConfig::default()
+    };
     ggpt_synth::generate(&cfg).unwrap().scene
 }

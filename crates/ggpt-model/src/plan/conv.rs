@@ -47,7 +47,11 @@ pub struct ConvTable {
 
 /// Voxel offset `(dx, dy, dz)` of tap `f` (network.md §6.1).
 pub fn tap_offset(f: usize) -> [i32; 3] {
-    [(f / 9) as i32 - 1, ((f / 3) % 3) as i32 - 1, (f % 3) as i32 - 1]
+    [
+        (f / 9) as i32 - 1,
+        ((f / 3) % 3) as i32 - 1,
+        (f % 3) as i32 - 1,
+    ]
 }
 
 /// Packs `(chunk, x, y, z)` into `chunk << 48 | x << 32 | y << 16 | z`; `None` outside `[0, 2^16)`.
@@ -105,7 +109,12 @@ impl Voxels {
             members.push(q);
         }
         member_start.push(members.len());
-        Voxels { voxel_of, keys, member_start, members }
+        Voxels {
+            voxel_of,
+            keys,
+            member_start,
+            members,
+        }
     }
 
     fn members(&self, v: usize) -> &[usize] {
@@ -152,11 +161,16 @@ pub fn build_conv_table(grid: &[[i32; 3]], offsets: &[usize]) -> ConvTable {
     let has_duplicates = vox.keys.len() < vox.members.len();
     // Neighbour maps of the 13 positive taps; a negative tap is the inverse relation of its
     // mirrored positive tap (v + d = u  <=>  u - d = v).
-    let positive: Vec<Vec<u32>> =
-        (CENTER_TAP + 1..NUM_TAPS).into_par_iter().map(|f| vox.neighbours(tap_offset(f))).collect();
+    let positive: Vec<Vec<u32>> = (CENTER_TAP + 1..NUM_TAPS)
+        .into_par_iter()
+        .map(|f| vox.neighbours(tap_offset(f)))
+        .collect();
     let neighbour_map = |f: usize| -> Vec<u32> {
         if f > CENTER_TAP {
-            positive.get(f - CENTER_TAP - 1).cloned().unwrap_or_default()
+            positive
+                .get(f - CENTER_TAP - 1)
+                .cloned()
+                .unwrap_or_default()
         } else {
             let mut inv = vec![NONE; vox.keys.len()];
             if let Some(pos) = positive.get(NUM_TAPS - 1 - f - CENTER_TAP - 1) {
@@ -174,7 +188,10 @@ pub fn build_conv_table(grid: &[[i32; 3]], offsets: &[usize]) -> ConvTable {
         .map(|f| {
             if f == CENTER_TAP {
                 let id: Vec<usize> = (0..grid.len()).collect();
-                return TapPairs { target: id.clone(), source: id };
+                return TapPairs {
+                    target: id.clone(),
+                    source: id,
+                };
             }
             let nb = neighbour_map(f);
             // Exact pair count first (avoids re-allocations on large levels).
@@ -184,13 +201,20 @@ pub fn build_conv_table(grid: &[[i32; 3]], offsets: &[usize]) -> ConvTable {
                 .enumerate()
                 .map(|(q, &v)| match nb.get(v as usize) {
                     Some(&u) if u != NONE && f > CENTER_TAP => 1,
-                    Some(&u) if u != NONE && vox.rep(v as usize) == Some(q) => vox.members(u as usize).len(),
+                    Some(&u) if u != NONE && vox.rep(v as usize) == Some(q) => {
+                        vox.members(u as usize).len()
+                    }
                     _ => 0,
                 })
                 .sum();
-            let mut pairs = TapPairs { target: Vec::with_capacity(count), source: Vec::with_capacity(count) };
+            let mut pairs = TapPairs {
+                target: Vec::with_capacity(count),
+                source: Vec::with_capacity(count),
+            };
             for (q, &v) in vox.voxel_of.iter().enumerate() {
-                let Some(&u) = nb.get(v as usize) else { continue };
+                let Some(&u) = nb.get(v as usize) else {
+                    continue;
+                };
                 if u == NONE {
                     continue;
                 }
@@ -211,7 +235,10 @@ pub fn build_conv_table(grid: &[[i32; 3]], offsets: &[usize]) -> ConvTable {
             pairs
         })
         .collect();
-    ConvTable { taps, has_duplicates }
+    ConvTable {
+        taps,
+        has_duplicates,
+    }
 }
 
 #[cfg(test)]
@@ -246,7 +273,11 @@ mod tests {
         let tap = |d: [i32; 3]| (9 * (d[0] + 1) + 3 * (d[1] + 1) + d[2] + 1) as usize;
         let pairs = |d: [i32; 3]| {
             let p = &t.taps[tap(d)];
-            p.target.iter().copied().zip(p.source.iter().copied()).collect::<Vec<_>>()
+            p.target
+                .iter()
+                .copied()
+                .zip(p.source.iter().copied())
+                .collect::<Vec<_>>()
         };
         assert_eq!(pairs([0, 0, 0]), (0..7).map(|q| (q, q)).collect::<Vec<_>>());
         assert_eq!(pairs([0, 0, 1]), [(0, 1), (2, 1), (6, 1)]);

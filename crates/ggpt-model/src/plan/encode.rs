@@ -26,21 +26,9 @@ pub const DEFAULT_GRID_RESOLUTION: u32 = 384;
 /// Largest supported grid resolution: voxel coordinates must fit 16 bits (serialization depth <= 16).
 pub const MAX_GRID_RESOLUTION: u32 = 1 << 16;
 
-/// One chunk record (network.md §2). All vectors are in pixel order and have the same length `K`.
-/// Points are in normalised chunk coordinates `(x - c) / r` (not clipped); `ff_conf` is the raw
-/// feed-forward confidence (`1 + exp` scale). Rows of `geo_pts` with `geo_msk` false are ignored
-/// (they may hold any value, including non-finite ones).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct ChunkInput {
-    /// Dense feed-forward point of each pixel, normalised chunk coordinates, `[K]`.
-    pub ff_pts: Vec<[f32; 3]>,
-    /// Raw feed-forward confidence of each pixel, `[K]`.
-    pub ff_conf: Vec<f32>,
-    /// DLT guidance point of each pixel, normalised chunk coordinates, `[K]` (used where `geo_msk`).
-    pub geo_pts: Vec<[f32; 3]>,
-    /// Whether the pixel has a DLT point (and hence a DLT token), `[K]`.
-    pub geo_msk: Vec<bool>,
-}
+/// The per-pixel network input of one chunk (network.md §2), defined Burn-free in
+/// `ggpt_core::chunk_input`; the planner borrows it through [`AsChunkView`].
+pub use ggpt_core::chunk_input::{AsChunkView, ChunkInput, ChunkView};
 
 /// Token features of one chunk (or of a concatenated batch, see [`super::BatchPlan`]).
 ///
@@ -117,11 +105,15 @@ pub fn grid_axis(c: f32, resolution: u32) -> i32 {
 
 /// Voxel coordinate `(x, y, z)` of a token coordinate (network.md §3.4); `c` in normalised chunk units.
 pub fn grid_coord(c: [f32; 3], resolution: u32) -> [i32; 3] {
-    [grid_axis(c[0], resolution), grid_axis(c[1], resolution), grid_axis(c[2], resolution)]
+    [
+        grid_axis(c[0], resolution),
+        grid_axis(c[1], resolution),
+        grid_axis(c[2], resolution),
+    ]
 }
 
 /// Checks lengths, emptiness and finiteness of a chunk (network.md §2).
-fn validate(chunk: &ChunkInput) -> Result<(), PlanError> {
+fn validate(chunk: ChunkView<'_>) -> Result<(), PlanError> {
     let k = chunk.ff_pts.len();
     for (field, got) in [
         ("ff_conf", chunk.ff_conf.len()),
@@ -129,25 +121,42 @@ fn validate(chunk: &ChunkInput) -> Result<(), PlanError> {
         ("geo_msk", chunk.geo_msk.len()),
     ] {
         if got != k {
-            return Err(PlanError::LengthMismatch { field, expected: k, got });
+            return Err(PlanError::LengthMismatch {
+                field,
+                expected: k,
+                got,
+            });
         }
     }
     if k == 0 {
         return Err(PlanError::EmptyChunk);
     }
-    if let Some(index) = chunk.ff_pts.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
-        return Err(PlanError::NonFinite { field: "ff_pts", index });
+    if let Some(index) = chunk
+        .ff_pts
+        .iter()
+        .position(|p| !p.iter().all(|v| v.is_finite()))
+    {
+        return Err(PlanError::NonFinite {
+            field: "ff_pts",
+            index,
+        });
     }
     if let Some(index) = chunk.ff_conf.iter().position(|v| !v.is_finite()) {
-        return Err(PlanError::NonFinite { field: "ff_conf", index });
+        return Err(PlanError::NonFinite {
+            field: "ff_conf",
+            index,
+        });
     }
     if let Some(index) = chunk
         .geo_pts
         .iter()
-        .zip(&chunk.geo_msk)
+        .zip(chunk.geo_msk)
         .position(|(p, &m)| m && !p.iter().all(|v| v.is_finite()))
     {
-        return Err(PlanError::NonFinite { field: "geo_pts", index });
+        return Err(PlanError::NonFinite {
+            field: "geo_pts",
+            index,
+        });
     }
     Ok(())
 }
@@ -159,7 +168,11 @@ fn validate(chunk: &ChunkInput) -> Result<(), PlanError> {
 ///
 /// Errors: length mismatch, empty chunk, non-finite `ff_pts` / `ff_conf`, non-finite `geo_pts`
 /// where `geo_msk` is true.
-pub fn encode_chunk(chunk: &ChunkInput) -> Result<TokenFeatures, PlanError> {
+///
+/// `chunk` is anything that lends the four per-pixel arrays ([`ChunkInput`], a chunk record, a
+/// training chunk, a reference to one): nothing is copied.
+pub fn encode_chunk<C: AsChunkView + ?Sized>(chunk: &C) -> Result<TokenFeatures, PlanError> {
+    let chunk = chunk.chunk_view();
     validate(chunk)?;
     let k = chunk.ff_pts.len();
     let dlt_pixel: Vec<usize> = chunk
@@ -196,11 +209,22 @@ pub fn encode_chunk(chunk: &ChunkInput) -> Result<TokenFeatures, PlanError> {
             }
         });
     let mut coord = Vec::with_capacity(n);
-    coord.extend_from_slice(&chunk.ff_pts);
-    coord.extend(dlt_pixel.iter().filter_map(|&i| chunk.geo_pts.get(i).copied()));
+    coord.extend_from_slice(chunk.ff_pts);
+    coord.extend(
+        dlt_pixel
+            .iter()
+            .filter_map(|&i| chunk.geo_pts.get(i).copied()),
+    );
     let mut is_dlt = vec![false; k];
     is_dlt.resize(n, true);
-    Ok(TokenFeatures { num_tokens: n, feat_no_embed: feat, is_dlt, coord, num_dense: k, dlt_pixel })
+    Ok(TokenFeatures {
+        num_tokens: n,
+        feat_no_embed: feat,
+        is_dlt,
+        coord,
+        num_dense: k,
+        dlt_pixel,
+    })
 }
 
 #[cfg(test)]
@@ -267,7 +291,9 @@ mod tests {
 
     #[test]
     fn grid_test_vector() {
-        let cs = [-1.3f32, -1.0, -0.9999, -0.5, 0.0, 0.3, 0.99739581, 0.9974, 1.0, 1.25];
+        let cs = [
+            -1.3f32, -1.0, -0.9999, -0.5, 0.0, 0.3, 0.99739581, 0.9974, 1.0, 1.25,
+        ];
         let gs = [0, 0, 0, 96, 192, 249, 383, 383, 383, 383];
         for (c, g) in cs.iter().zip(gs.iter()) {
             assert_eq!(grid_axis(*c, 384), *g, "coord {c}");
@@ -282,7 +308,11 @@ mod tests {
         ChunkInput {
             ff_pts: vec![[0.1, 0.2, 0.3], [-0.5, 0.0, 0.9], [0.0, 0.0, 0.0]],
             ff_conf: vec![1.5, 2.0, 3.0],
-            geo_pts: vec![[f32::NAN, f32::INFINITY, 7.0], [-0.4, 0.1, 0.8], [0.2, -0.2, 0.0]],
+            geo_pts: vec![
+                [f32::NAN, f32::INFINITY, 7.0],
+                [-0.4, 0.1, 0.8],
+                [0.2, -0.2, 0.0],
+            ],
             geo_msk: vec![false, true, true],
         }
     }
@@ -305,11 +335,17 @@ mod tests {
         assert_eq!(row(0)[CONF_COL], 1.5);
         assert!(row(0)[GEO_PE_COL..].iter().all(|&v| v == 0.0));
         // Dense token 1: guidance PE and dense-minus-DLT offset.
-        assert_eq!(&row(1)[GEO_PE_COL..GEO_PE_COL + PE_DIM], &positional_encoding([-0.4, 0.1, 0.8])[..]);
+        assert_eq!(
+            &row(1)[GEO_PE_COL..GEO_PE_COL + PE_DIM],
+            &positional_encoding([-0.4, 0.1, 0.8])[..]
+        );
         assert_eq!(row(1)[OFFSET_COL], -0.5f32 - -0.4f32);
         assert_eq!(row(1)[OFFSET_COL + 2], 0.9f32 - 0.8f32);
         // DLT token of pixel 2: PE(geo) then 103 zeros.
-        assert_eq!(&row(4)[..PE_DIM], &positional_encoding([0.2, -0.2, 0.0])[..]);
+        assert_eq!(
+            &row(4)[..PE_DIM],
+            &positional_encoding([0.2, -0.2, 0.0])[..]
+        );
         assert!(row(4)[PE_DIM..].iter().all(|&v| v == 0.0));
     }
 
@@ -317,20 +353,53 @@ mod tests {
     fn validation_errors() {
         let mut c = tiny_chunk();
         c.ff_conf.pop();
-        assert!(matches!(encode_chunk(&c), Err(PlanError::LengthMismatch { field: "ff_conf", .. })));
+        assert!(matches!(
+            encode_chunk(&c),
+            Err(PlanError::LengthMismatch {
+                field: "ff_conf",
+                ..
+            })
+        ));
         let mut c = tiny_chunk();
         c.geo_msk.push(true);
-        assert!(matches!(encode_chunk(&c), Err(PlanError::LengthMismatch { field: "geo_msk", .. })));
-        assert!(matches!(encode_chunk(&ChunkInput::default()), Err(PlanError::EmptyChunk)));
+        assert!(matches!(
+            encode_chunk(&c),
+            Err(PlanError::LengthMismatch {
+                field: "geo_msk",
+                ..
+            })
+        ));
+        assert!(matches!(
+            encode_chunk(&ChunkInput::default()),
+            Err(PlanError::EmptyChunk)
+        ));
         let mut c = tiny_chunk();
         c.ff_pts[2][1] = f32::NAN;
-        assert!(matches!(encode_chunk(&c), Err(PlanError::NonFinite { field: "ff_pts", index: 2 })));
+        assert!(matches!(
+            encode_chunk(&c),
+            Err(PlanError::NonFinite {
+                field: "ff_pts",
+                index: 2
+            })
+        ));
         let mut c = tiny_chunk();
         c.ff_conf[1] = f32::INFINITY;
-        assert!(matches!(encode_chunk(&c), Err(PlanError::NonFinite { field: "ff_conf", index: 1 })));
+        assert!(matches!(
+            encode_chunk(&c),
+            Err(PlanError::NonFinite {
+                field: "ff_conf",
+                index: 1
+            })
+        ));
         let mut c = tiny_chunk();
         c.geo_pts[1][0] = f32::NEG_INFINITY;
-        assert!(matches!(encode_chunk(&c), Err(PlanError::NonFinite { field: "geo_pts", index: 1 })));
+        assert!(matches!(
+            encode_chunk(&c),
+            Err(PlanError::NonFinite {
+                field: "geo_pts",
+                index: 1
+            })
+        ));
     }
 
     #[test]

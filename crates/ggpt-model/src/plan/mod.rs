@@ -15,8 +15,8 @@ pub mod windows;
 
 pub use conv::{CENTER_TAP, ConvTable, NUM_TAPS, TapPairs, build_conv_table, tap_offset};
 pub use encode::{
-    ChunkInput, FEAT_DIM, FEAT_NO_EMBED_DIM, PE_DIM, TYPE_EMBED_DIM, TokenFeatures, encode_chunk, grid_coord,
-    positional_encoding,
+    AsChunkView, ChunkInput, ChunkView, FEAT_DIM, FEAT_NO_EMBED_DIM, PE_DIM, TYPE_EMBED_DIM,
+    TokenFeatures, encode_chunk, grid_coord, positional_encoding,
 };
 pub use pool::{PoolMap, Pooled, pool_level};
 pub use serialize::{NUM_ORDERS, ORDERS, SerialOrder, curve_code, hilbert_code, z_order_code};
@@ -82,16 +82,26 @@ pub struct PlanConfig {
 impl PlanConfig {
     /// The released configuration: grid 384, 5 levels, patch 1024 everywhere (network.md §1.1).
     pub fn released() -> Self {
-        Self { grid_resolution: encode::DEFAULT_GRID_RESOLUTION, patch_size: vec![1024; 5], num_levels: 5 }
+        Self {
+            grid_resolution: encode::DEFAULT_GRID_RESOLUTION,
+            patch_size: vec![1024; 5],
+            num_levels: 5,
+        }
     }
     /// The small fixture configuration: grid 384, 5 levels, patch 128 (network.md §1.2).
     pub fn small() -> Self {
-        Self { grid_resolution: encode::DEFAULT_GRID_RESOLUTION, patch_size: vec![128; 5], num_levels: 5 }
+        Self {
+            grid_resolution: encode::DEFAULT_GRID_RESOLUTION,
+            patch_size: vec![128; 5],
+            num_levels: 5,
+        }
     }
     /// Checks the configuration.
     pub fn validate(&self) -> Result<(), PlanError> {
         if self.num_levels == 0 {
-            return Err(PlanError::InvalidConfig("num_levels must be at least 1".into()));
+            return Err(PlanError::InvalidConfig(
+                "num_levels must be at least 1".into(),
+            ));
         }
         if self.patch_size.len() != self.num_levels {
             return Err(PlanError::InvalidConfig(format!(
@@ -101,7 +111,9 @@ impl PlanConfig {
             )));
         }
         if self.patch_size.contains(&0) {
-            return Err(PlanError::InvalidConfig("patch sizes must be at least 1".into()));
+            return Err(PlanError::InvalidConfig(
+                "patch sizes must be at least 1".into(),
+            ));
         }
         if self.grid_resolution == 0 || self.grid_resolution > encode::MAX_GRID_RESOLUTION {
             return Err(PlanError::InvalidConfig(format!(
@@ -162,7 +174,11 @@ impl LevelPlan {
     }
     /// Token range of chunk `b` at this level (empty if `b` is out of range).
     pub fn chunk_range(&self, b: usize) -> std::ops::Range<usize> {
-        let start = if b == 0 { 0 } else { self.offsets.get(b - 1).copied().unwrap_or(0) };
+        let start = if b == 0 {
+            0
+        } else {
+            self.offsets.get(b - 1).copied().unwrap_or(0)
+        };
         start..self.offsets.get(b).copied().unwrap_or(start)
     }
     /// The official padding tables of this level (network.md §7.3).
@@ -226,8 +242,10 @@ fn plan_level(
 
 /// Plans one forward over `chunks` (network.md §3-§8): encodes every chunk, concatenates the
 /// token lists, and builds every level's serialization, windows, neighbour tables and pooling.
-/// Points are in normalised chunk coordinates (see [`ChunkInput`]).
-pub fn plan_batch(chunks: &[ChunkInput], cfg: &PlanConfig) -> Result<BatchPlan, PlanError> {
+/// Points are in normalised chunk coordinates (see [`ChunkInput`]). The chunks are borrowed
+/// ([`AsChunkView`]: `&[ChunkInput]`, `&[&ChunkInput]`, chunk records, training chunks), never
+/// copied.
+pub fn plan_batch<C: AsChunkView>(chunks: &[C], cfg: &PlanConfig) -> Result<BatchPlan, PlanError> {
     cfg.validate()?;
     if chunks.is_empty() {
         return Err(PlanError::NoChunks);
@@ -238,37 +256,70 @@ pub fn plan_batch(chunks: &[ChunkInput], cfg: &PlanConfig) -> Result<BatchPlan, 
     let encoded: Vec<TokenFeatures> = chunks
         .iter()
         .enumerate()
-        .map(|(b, c)| encode_chunk(c).map_err(|e| PlanError::Chunk { chunk: b, source: Box::new(e) }))
+        .map(|(b, c)| {
+            encode_chunk(c).map_err(|e| PlanError::Chunk {
+                chunk: b,
+                source: Box::new(e),
+            })
+        })
         .collect::<Result<_, _>>()?;
     let mut offsets = Vec::with_capacity(encoded.len());
     let mut layout = Vec::with_capacity(encoded.len());
     let (mut tok, mut dlt) = (0usize, 0usize);
     for t in &encoded {
-        layout.push(ChunkLayout { token_start: tok, num_dense: t.num_dense, num_dlt: t.num_dlt(), dlt_start: dlt });
+        layout.push(ChunkLayout {
+            token_start: tok,
+            num_dense: t.num_dense,
+            num_dlt: t.num_dlt(),
+            dlt_start: dlt,
+        });
         tok += t.num_tokens;
         dlt += t.num_dlt();
         offsets.push(tok);
     }
     let tokens = concat_tokens(encoded);
     let res = cfg.grid_resolution;
-    let grid: Vec<[i32; 3]> = tokens.coord.par_iter().map(|&c| grid_coord(c, res)).collect();
+    let grid: Vec<[i32; 3]> = tokens
+        .coord
+        .par_iter()
+        .map(|&c| grid_coord(c, res))
+        .collect();
     let mut depth = Vec::with_capacity(offsets.len());
     let mut start = 0;
     for &end in &offsets {
-        depth.push(serialize::serialization_depth(grid.get(start..end).unwrap_or(&[])));
+        depth.push(serialize::serialization_depth(
+            grid.get(start..end).unwrap_or(&[]),
+        ));
         start = end;
     }
     let codes = serialize::compute_codes(&grid, &offsets, &depth);
     let mut levels: Vec<LevelPlan> = Vec::with_capacity(cfg.num_levels);
     let mut current = plan_level(grid, codes, offsets.clone(), depth, cfg.patch_size[0]);
     for l in 1..cfg.num_levels {
-        let pooled = pool_level(&current.grid, &current.codes, &current.order[0], &current.offsets, &current.depth);
-        let next = plan_level(pooled.grid, pooled.codes, pooled.offsets, pooled.depths, cfg.patch_size[l]);
+        let pooled = pool_level(
+            &current.grid,
+            &current.codes,
+            &current.order[0],
+            &current.offsets,
+            &current.depth,
+        );
+        let next = plan_level(
+            pooled.grid,
+            pooled.codes,
+            pooled.offsets,
+            pooled.depths,
+            cfg.patch_size[l],
+        );
         current.pool_to_next = Some(pooled.map);
         levels.push(std::mem::replace(&mut current, next));
     }
     levels.push(current);
-    Ok(BatchPlan { offsets, layout, levels, tokens })
+    Ok(BatchPlan {
+        offsets,
+        layout,
+        levels,
+        tokens,
+    })
 }
 
 /// Concatenates per-chunk token features (chunk 0 first).
@@ -304,7 +355,9 @@ mod tests {
     fn synthetic_chunk(k: usize, seed: u64) -> ChunkInput {
         let mut s = seed;
         let mut next = || {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.4 - 1.2
         };
         let mut c = ChunkInput::default();
@@ -330,7 +383,10 @@ mod tests {
         let mut c = PlanConfig::small();
         c.grid_resolution = 0;
         assert!(c.validate().is_err());
-        assert!(matches!(plan_batch(&[], &PlanConfig::small()), Err(PlanError::NoChunks)));
+        assert!(matches!(
+            plan_batch::<ChunkInput>(&[], &PlanConfig::small()),
+            Err(PlanError::NoChunks)
+        ));
         let bad = ChunkInput::default();
         let good = synthetic_chunk(10, 1);
         let err = plan_batch(&[good, bad], &PlanConfig::small()).unwrap_err();
@@ -340,7 +396,11 @@ mod tests {
     #[test]
     fn plan_invariants() {
         let chunks = [synthetic_chunk(700, 3), synthetic_chunk(90, 4)];
-        let cfg = PlanConfig { grid_resolution: 384, patch_size: vec![64, 64, 32, 32, 16], num_levels: 5 };
+        let cfg = PlanConfig {
+            grid_resolution: 384,
+            patch_size: vec![64, 64, 32, 32, 16],
+            num_levels: 5,
+        };
         let plan = plan_batch(&chunks, &cfg).unwrap();
         assert_eq!(plan.levels.len(), 5);
         assert_eq!(plan.offsets, [700 + 234, 700 + 234 + 90 + 30]);
@@ -378,7 +438,11 @@ mod tests {
             *p = [p[0] * 0.5 - 0.4, p[1] * 0.5 - 0.4, p[2] * 0.5 - 0.4];
         }
         let b = synthetic_chunk(300, 8);
-        let cfg = PlanConfig { grid_resolution: 384, patch_size: vec![64, 32, 32, 16, 16], num_levels: 5 };
+        let cfg = PlanConfig {
+            grid_resolution: 384,
+            patch_size: vec![64, 32, 32, 16, 16],
+            num_levels: 5,
+        };
         let pa = plan_batch(std::slice::from_ref(&a), &cfg).unwrap();
         let pb = plan_batch(std::slice::from_ref(&b), &cfg).unwrap();
         assert_eq!(pa.levels[0].depth, [8]);

@@ -111,7 +111,9 @@ pub fn pool_level(
     let width = counts.iter().copied().max().unwrap_or(1).max(1);
     let mut children = Vec::with_capacity(m_total * width);
     for m in 0..m_total {
-        let mem = members.get(member_start[m]..member_start[m + 1]).unwrap_or(&[]);
+        let mem = members
+            .get(member_start[m]..member_start[m + 1])
+            .unwrap_or(&[]);
         let first = mem.first().copied().unwrap_or(0);
         children.extend_from_slice(mem);
         children.extend(std::iter::repeat_n(first, width - mem.len()));
@@ -128,7 +130,10 @@ pub fn pool_level(
     let grid_c: Vec<[i32; 3]> = heads
         .iter()
         .zip(&shift_of)
-        .map(|(&q, &s)| grid.get(q).map_or([0; 3], |g| [g[0] >> s, g[1] >> s, g[2] >> s]))
+        .map(|(&q, &s)| {
+            grid.get(q)
+                .map_or([0; 3], |g| [g[0] >> s, g[1] >> s, g[2] >> s])
+        })
         .collect();
     let codes_c = std::array::from_fn(|r| {
         heads
@@ -138,7 +143,14 @@ pub fn pool_level(
             .collect()
     });
     Pooled {
-        map: PoolMap { cluster, children, children_width: width, member_start, members, num_coarse: m_total },
+        map: PoolMap {
+            cluster,
+            children,
+            children_width: width,
+            member_start,
+            members,
+            num_coarse: m_total,
+        },
         grid: grid_c,
         codes: codes_c,
         offsets: new_offsets,
@@ -155,9 +167,20 @@ mod tests {
     fn pooling_small_example() {
         // Chunk 0: tokens 0, 2 share parent (0,0,0); token 1 in parent (1,0,0) duplicate voxel with 3.
         // Chunk 1: tokens 4..6.
-        let grid = [[0, 0, 0], [2, 0, 0], [1, 1, 1], [2, 0, 0], [7, 7, 7], [6, 6, 6], [0, 0, 1]];
+        let grid = [
+            [0, 0, 0],
+            [2, 0, 0],
+            [1, 1, 1],
+            [2, 0, 0],
+            [7, 7, 7],
+            [6, 6, 6],
+            [0, 0, 1],
+        ];
         let offsets = [4, 7];
-        let depths = vec![serialization_depth(&grid[..4]), serialization_depth(&grid[4..])];
+        let depths = vec![
+            serialization_depth(&grid[..4]),
+            serialization_depth(&grid[4..]),
+        ];
         assert_eq!(depths, [2, 3]);
         let codes = compute_codes(&grid, &offsets, &depths);
         let (orders, _) = orders_and_inverses(&codes, &offsets);

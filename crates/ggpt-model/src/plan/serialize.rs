@@ -22,8 +22,12 @@ pub enum SerialOrder {
 }
 
 /// Rows `z, z-trans, hilbert, hilbert-trans` in the order of `code[4, N]`.
-pub const ORDERS: [SerialOrder; NUM_ORDERS] =
-    [SerialOrder::Z, SerialOrder::ZTrans, SerialOrder::Hilbert, SerialOrder::HilbertTrans];
+pub const ORDERS: [SerialOrder; NUM_ORDERS] = [
+    SerialOrder::Z,
+    SerialOrder::ZTrans,
+    SerialOrder::Hilbert,
+    SerialOrder::HilbertTrans,
+];
 
 /// Number of significant bits of `v` (`bit_length(0) = 0`, `bit_length(383) = 9`).
 pub fn bit_length(v: u32) -> u32 {
@@ -33,7 +37,13 @@ pub fn bit_length(v: u32) -> u32 {
 /// Serialization depth of a set of voxels (network.md §4.2, Pointcept v1.5.2):
 /// `bit_length(max over tokens and axes of g)`; negative coordinates count as 0.
 pub fn serialization_depth(grid: &[[i32; 3]]) -> u32 {
-    let max = grid.iter().flat_map(|g| g.iter()).copied().max().unwrap_or(0).max(0);
+    let max = grid
+        .iter()
+        .flat_map(|g| g.iter())
+        .copied()
+        .max()
+        .unwrap_or(0)
+        .max(0);
     bit_length(max as u32)
 }
 
@@ -50,7 +60,11 @@ fn spread3(v: u32) -> u64 {
 
 /// Mask of the low `depth` bits.
 fn low_mask(depth: u32) -> u32 {
-    if depth >= 32 { u32::MAX } else { (1u32 << depth) - 1 }
+    if depth >= 32 {
+        u32::MAX
+    } else {
+        (1u32 << depth) - 1
+    }
 }
 
 /// Z-order (Morton) code (network.md §4.3): bit `i` of `x` -> code bit `3i+2`, `y` -> `3i+1`,
@@ -116,7 +130,11 @@ pub fn batched_key(batch: u64, curve: u64, depth: u32) -> u64 {
 
 /// Curve codes of all tokens for the four rows, chunk `b` (tokens `offsets[b-1]..offsets[b]`)
 /// encoded at `depths[b]`. `offsets` are exclusive ends (no leading zero).
-pub fn compute_codes(grid: &[[i32; 3]], offsets: &[usize], depths: &[u32]) -> [Vec<u64>; NUM_ORDERS] {
+pub fn compute_codes(
+    grid: &[[i32; 3]],
+    offsets: &[usize],
+    depths: &[u32],
+) -> [Vec<u64>; NUM_ORDERS] {
     let mut chunk_depth = vec![0u32; grid.len()];
     let mut start = 0;
     for (&end, &d) in offsets.iter().zip(depths) {
@@ -200,7 +218,10 @@ mod tests {
     ];
 
     fn codes(order: SerialOrder, depth: u32) -> Vec<u64> {
-        VOXELS.iter().map(|&g| curve_code(order, g, depth)).collect()
+        VOXELS
+            .iter()
+            .map(|&g| curve_code(order, g, depth))
+            .collect()
     }
 
     #[test]
@@ -271,13 +292,25 @@ mod tests {
             let got = ORDERS.map(|o| curve_code(o, g, d));
             assert_eq!(got, expect, "voxel {g:?} depth {d}");
         }
-        assert_eq!(curve_code(SerialOrder::Hilbert, [100, 37, 250], 8), 2_790_203);
-        assert_eq!(curve_code(SerialOrder::Hilbert, [100, 37, 250], 9), 16_449_211);
+        assert_eq!(
+            curve_code(SerialOrder::Hilbert, [100, 37, 250], 8),
+            2_790_203
+        );
+        assert_eq!(
+            curve_code(SerialOrder::Hilbert, [100, 37, 250], 9),
+            16_449_211
+        );
         assert_eq!(curve_code(SerialOrder::Z, [383, 0, 383], 9), 85_384_045);
-        assert_eq!(curve_code(SerialOrder::Hilbert, [383, 0, 383], 9), 110_849_462);
+        assert_eq!(
+            curve_code(SerialOrder::Hilbert, [383, 0, 383], 9),
+            110_849_462
+        );
         for d in [8, 9] {
             assert_eq!(curve_code(SerialOrder::Z, [192, 192, 192], d), 16_515_072);
-            assert_eq!(curve_code(SerialOrder::Hilbert, [192, 192, 192], d), 11_796_480);
+            assert_eq!(
+                curve_code(SerialOrder::Hilbert, [192, 192, 192], d),
+                11_796_480
+            );
         }
     }
 
@@ -286,11 +319,21 @@ mod tests {
         // hilbert(g >> 1, depth - 1) == hilbert(g, depth) >> 3, and the same for Z-order.
         let mut s = 12345u64;
         for _ in 0..2000 {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            let g = [(s >> 20) as i32 & 511, (s >> 30) as i32 & 511, (s >> 40) as i32 & 511];
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            let g = [
+                (s >> 20) as i32 & 511,
+                (s >> 30) as i32 & 511,
+                (s >> 40) as i32 & 511,
+            ];
             let half = [g[0] >> 1, g[1] >> 1, g[2] >> 1];
             for o in ORDERS {
-                assert_eq!(curve_code(o, half, 8), curve_code(o, g, 9) >> 3, "{o:?} {g:?}");
+                assert_eq!(
+                    curve_code(o, half, 8),
+                    curve_code(o, g, 9) >> 3,
+                    "{o:?} {g:?}"
+                );
             }
         }
     }

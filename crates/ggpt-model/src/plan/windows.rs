@@ -30,15 +30,30 @@ pub fn flash_windows(offsets: &[usize], patch: usize) -> Vec<Window> {
         if n == 0 {
             // Nothing to attend (never happens for planned chunks).
         } else if n <= patch {
-            out.push(Window { start, len: n, owned_from: start, owned_len: n });
+            out.push(Window {
+                start,
+                len: n,
+                owned_from: start,
+                owned_len: n,
+            });
         } else {
             let m = n.div_ceil(patch);
             for w in 0..m - 1 {
                 let s = start + w * patch;
-                out.push(Window { start: s, len: patch, owned_from: s, owned_len: patch });
+                out.push(Window {
+                    start: s,
+                    len: patch,
+                    owned_from: s,
+                    owned_len: patch,
+                });
             }
             let owned_from = start + (m - 1) * patch;
-            out.push(Window { start: end - patch, len: patch, owned_from, owned_len: end - owned_from });
+            out.push(Window {
+                start: end - patch,
+                len: patch,
+                owned_from,
+                owned_len: end - owned_from,
+            });
         }
         start = end.max(start);
     }
@@ -60,7 +75,10 @@ pub struct OfficialAttnTables {
 /// counts and the patch size `patch` (`>= 1`).
 pub fn official_attn_tables(counts: &[usize], patch: usize) -> OfficialAttnTables {
     let p = patch.max(1);
-    let padded: Vec<usize> = counts.iter().map(|&n| if n > p { n.div_ceil(p) * p } else { n }).collect();
+    let padded: Vec<usize> = counts
+        .iter()
+        .map(|&n| if n > p { n.div_ceil(p) * p } else { n })
+        .collect();
     let total: usize = counts.iter().sum();
     let total_pad: usize = padded.iter().sum();
     let mut pad: Vec<usize> = Vec::with_capacity(total_pad);
@@ -86,7 +104,11 @@ pub fn official_attn_tables(counts: &[usize], patch: usize) -> OfficialAttnTable
         q += np;
     }
     cu.push(q);
-    OfficialAttnTables { pad, unpad, cu_seqlens: cu }
+    OfficialAttnTables {
+        pad,
+        unpad,
+        cu_seqlens: cu,
+    }
 }
 
 #[cfg(test)]
@@ -161,7 +183,10 @@ mod tests {
                     owner[pos] = k;
                 }
                 for pos in w.start..w.start + w.len {
-                    assert!(owner[pos] <= k, "position {pos} not owned by its first window");
+                    assert!(
+                        owner[pos] <= k,
+                        "position {pos} not owned by its first window"
+                    );
                 }
             }
             assert!(owner.iter().all(|&o| o != usize::MAX));
@@ -170,13 +195,48 @@ mod tests {
 
     #[test]
     fn window_counts_of_the_fixture_levels() {
-        for (n, m) in [(2296, 18), (1743, 14), (1109, 9), (753, 6), (531, 5), (679, 6), (592, 5), (371, 3), (163, 2), (93, 1)] {
+        for (n, m) in [
+            (2296, 18),
+            (1743, 14),
+            (1109, 9),
+            (753, 6),
+            (531, 5),
+            (679, 6),
+            (592, 5),
+            (371, 3),
+            (163, 2),
+            (93, 1),
+        ] {
             assert_eq!(flash_windows(&[n], 128).len(), m, "n = {n}");
         }
         let w = flash_windows(&[679], 128);
-        assert_eq!(w[5], Window { start: 551, len: 128, owned_from: 640, owned_len: 39 });
-        assert_eq!(w[4], Window { start: 512, len: 128, owned_from: 512, owned_len: 128 });
+        assert_eq!(
+            w[5],
+            Window {
+                start: 551,
+                len: 128,
+                owned_from: 640,
+                owned_len: 39
+            }
+        );
+        assert_eq!(
+            w[4],
+            Window {
+                start: 512,
+                len: 128,
+                owned_from: 512,
+                owned_len: 128
+            }
+        );
         let w = flash_windows(&[93], 128);
-        assert_eq!(w, [Window { start: 0, len: 93, owned_from: 0, owned_len: 93 }]);
+        assert_eq!(
+            w,
+            [Window {
+                start: 0,
+                len: 93,
+                owned_from: 0,
+                owned_len: 93
+            }]
+        );
     }
 }

@@ -12,7 +12,10 @@ use safetensors::SafeTensors;
 
 /// `<workspace>/../shared/fixtures/ggpt_small`.
 pub fn small_dir() -> PathBuf {
-    PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/fixtures/ggpt_small"))
+    PathBuf::from(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../../shared/fixtures/ggpt_small"
+    ))
 }
 
 /// Reads a fixture file (panics with the path when missing: tests must fail, not skip).
@@ -30,7 +33,8 @@ pub fn fixture_chunks() -> Vec<ChunkInput> {
 /// The small model with the fixture weights (safetensors) on `device`.
 pub fn small_model(device: &Device) -> Ggpt {
     let model = Ggpt::new(&GgptConfig::small(), device);
-    ggpt_model::weights::load_checkpoint(model, &small_dir().join("weights.safetensors")).unwrap_or_else(|e| panic!("{e}"))
+    ggpt_model::weights::load_checkpoint(model, &small_dir().join("weights.safetensors"))
+        .unwrap_or_else(|e| panic!("{e}"))
 }
 
 /// Tensor values as f32.
@@ -42,7 +46,11 @@ pub fn values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
 pub fn max_abs_diff(a: &[f32], b: &[f32]) -> (f32, usize) {
     let mut worst = (0.0f32, 0usize);
     for (i, (x, y)) in a.iter().zip(b).enumerate() {
-        let d = if x.is_finite() && y.is_finite() { (x - y).abs() } else { f32::INFINITY };
+        let d = if x.is_finite() && y.is_finite() {
+            (x - y).abs()
+        } else {
+            f32::INFINITY
+        };
         if d > worst.0 {
             worst = (d, i);
         }
@@ -51,13 +59,31 @@ pub fn max_abs_diff(a: &[f32], b: &[f32]) -> (f32, usize) {
 }
 
 /// Compares `ours` with `reference` (shape `shape`); returns a failure line or None.
-pub fn compare(name: &str, ours: &[f32], reference: &[f32], shape: &[usize], tol: f32) -> Option<String> {
+pub fn compare(
+    name: &str,
+    ours: &[f32],
+    reference: &[f32],
+    shape: &[usize],
+    tol: f32,
+) -> Option<String> {
     if ours.len() != reference.len() {
-        return Some(format!("{name}: {} values, reference {} (shape {shape:?})", ours.len(), reference.len()));
+        return Some(format!(
+            "{name}: {} values, reference {} (shape {shape:?})",
+            ours.len(),
+            reference.len()
+        ));
     }
     let (d, i) = max_abs_diff(ours, reference);
-    let cols = shape.get(1..).map(|s| s.iter().product::<usize>()).unwrap_or(1).max(1);
-    let at = if shape.len() > 1 { format!("[{}, {}]", i / cols, i % cols) } else { format!("[{i}]") };
+    let cols = shape
+        .get(1..)
+        .map(|s| s.iter().product::<usize>())
+        .unwrap_or(1)
+        .max(1);
+    let at = if shape.len() > 1 {
+        format!("[{}, {}]", i / cols, i % cols)
+    } else {
+        format!("[{i}]")
+    };
     let line = format!(
         "{name}: max |Δ| = {d:.3e} at {at} (ours {}, ref {})",
         ours.get(i).copied().unwrap_or(f32::NAN),

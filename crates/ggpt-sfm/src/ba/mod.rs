@@ -22,7 +22,14 @@
 //! observation behind its camera is rejected, so the cost stays a smooth function of the unknowns.
 //! Points that are not finite or have a coordinate of magnitude `≥` [`MAX_POINT_COORD`] are left
 //! out (`sfm.md` §7.1 [project]).
+//!
+//! Code layout: `layout.rs` (parameter layout, solver state, step updates), `residual.rs`
+//! (residuals, analytic Jacobians, cost and linearisation), `schur.rs` (Schur complement, Cholesky
+//! solve, back-substitution) and `solver.rs` (the LM loop behind [`bundle_adjust`]).
 
+mod layout;
+mod residual;
+mod schur;
 mod solver;
 pub mod synthetic;
 #[cfg(test)]
@@ -171,7 +178,12 @@ impl BaOptions {
     /// these options the solver follows Ceres' LM path (the `sfm_small` fixture's 100-iteration
     /// Ceres cost is reproduced to ~1e-9 relative).
     pub fn official() -> Self {
-        BaOptions { function_tolerance: 0.0, parameter_tolerance: 0.0, fix_gauge: false, ..BaOptions::default() }
+        BaOptions {
+            function_tolerance: 0.0,
+            parameter_tolerance: 0.0,
+            fix_gauge: false,
+            ..BaOptions::default()
+        }
     }
 }
 
@@ -206,7 +218,9 @@ pub struct BaReport {
 pub fn orthonormalize_rotation(r: &Matrix3<f64>) -> Matrix3<f64> {
     let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(*r));
     // nalgebra does not renormalise the quaternion of a non-orthonormal matrix; COLMAP does.
-    UnitQuaternion::new_normalize(q.into_inner()).to_rotation_matrix().into_inner()
+    UnitQuaternion::new_normalize(q.into_inner())
+        .to_rotation_matrix()
+        .into_inner()
 }
 
 /// Projects a camera-frame point `p` with focal `(fx, fy)` and principal point `(cx, cy)`
@@ -242,12 +256,16 @@ fn validate(problem: &BaProblem) -> Result<(), SfmError> {
     }
     let (h, w) = problem.image_size;
     if h == 0 || w == 0 {
-        return Err(SfmError::Invalid(format!("bundle adjustment: empty image size (h, w) = ({h}, {w})")));
+        return Err(SfmError::Invalid(format!(
+            "bundle adjustment: empty image size (h, w) = ({h}, {w})"
+        )));
     }
     if let LossFunction::Cauchy { scale } = problem.loss
         && !(scale.is_finite() && scale > 0.0)
     {
-        return Err(SfmError::Invalid(format!("bundle adjustment: Cauchy loss scale must be positive, got {scale}")));
+        return Err(SfmError::Invalid(format!(
+            "bundle adjustment: Cauchy loss scale must be positive, got {scale}"
+        )));
     }
     for (i, o) in problem.observations.iter().enumerate() {
         if o.view >= n {

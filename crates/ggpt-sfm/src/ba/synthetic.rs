@@ -1,6 +1,6 @@
 //! Synthetic bundle-adjustment problems with exact ground truth (`sfm.md` §12.2, §13): cameras on
 //! an arc looking at a cloud of points, perturbed poses / points / focal, noisy observations.
-//! Used by the tests and by the `bench_ba` benchmark (which can export them for pycolmap).
+//! Used by the tests and by the `ba` bench target (which can export them for pycolmap).
 
 use nalgebra::{Matrix3, Matrix3x4, Point3, Rotation3, Vector2, Vector3};
 use rand::{Rng, SeedableRng};
@@ -114,8 +114,16 @@ pub fn generate(cfg: &SyntheticConfig) -> SyntheticBa {
     let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
     let gt_cams: Vec<Matrix3x4<f64>> = (0..n)
         .map(|v| {
-            let a = if n > 1 { (-30.0 + 60.0 * v as f64 / (n - 1) as f64).to_radians() } else { 0.0 };
-            let centre = Vector3::new(5.0 * a.sin(), -1.5 + 1.0 * (v % 3) as f64, -5.0 * a.cos() + 5.0);
+            let a = if n > 1 {
+                (-30.0 + 60.0 * v as f64 / (n - 1) as f64).to_radians()
+            } else {
+                0.0
+            };
+            let centre = Vector3::new(
+                5.0 * a.sin(),
+                -1.5 + 1.0 * (v % 3) as f64,
+                -5.0 * a.cos() + 5.0,
+            );
             look_at(&centre, &Vector3::new(0.0, 0.0, 5.0))
         })
         .collect();
@@ -136,7 +144,12 @@ pub fn generate(cfg: &SyntheticConfig) -> SyntheticBa {
             let m = &gt_cams[v];
             let p = m.fixed_view::<3, 3>(0, 0) * x + m.column(3);
             match project(&p, cfg.focal, cfg.focal, cx, cy) {
-                Some(uv) if uv.x > 0.0 && uv.y > 0.0 && uv.x < w as f64 - 1.0 && uv.y < h as f64 - 1.0 => {
+                Some(uv)
+                    if uv.x > 0.0
+                        && uv.y > 0.0
+                        && uv.x < w as f64 - 1.0
+                        && uv.y < h as f64 - 1.0 =>
+                {
                     obs.push((v, uv));
                 }
                 _ => break,
@@ -148,7 +161,11 @@ pub fn generate(cfg: &SyntheticConfig) -> SyntheticBa {
         let j = gt_points.len();
         for (v, uv) in obs {
             let noise = Vector2::new(gaussian(&mut rng), gaussian(&mut rng)) * cfg.pixel_noise;
-            observations.push(BaObservation { view: v, point: j, xy: uv + noise });
+            observations.push(BaObservation {
+                view: v,
+                point: j,
+                xy: uv + noise,
+            });
         }
         gt_points.push(Point3::from(x));
     }
@@ -170,7 +187,10 @@ pub fn generate(cfg: &SyntheticConfig) -> SyntheticBa {
         .collect();
     let points = gt_points
         .iter()
-        .map(|p| p + Vector3::new(gaussian(&mut rng), gaussian(&mut rng), gaussian(&mut rng)) * cfg.point_noise)
+        .map(|p| {
+            p + Vector3::new(gaussian(&mut rng), gaussian(&mut rng), gaussian(&mut rng))
+                * cfg.point_noise
+        })
         .collect();
     let f0 = cfg.focal * (1.0 + cfg.focal_noise);
     let k = Matrix3::new(f0, 0.0, cx, 0.0, f0, cy, 0.0, 0.0, 1.0);

@@ -7,19 +7,33 @@ use safetensors::{Dtype, SafeTensors};
 use super::synthetic::{SyntheticConfig, generate};
 use super::*;
 
-const FIXTURE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/fixtures/sfm_small/steps.safetensors");
+const FIXTURE: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../../../shared/fixtures/sfm_small/steps.safetensors"
+);
 
 fn read_f64(st: &SafeTensors<'_>, key: &str) -> (Vec<usize>, Vec<f64>) {
-    let t = st.tensor(key).unwrap_or_else(|e| panic!("{FIXTURE}: missing tensor {key}: {e}"));
+    let t = st
+        .tensor(key)
+        .unwrap_or_else(|e| panic!("{FIXTURE}: missing tensor {key}: {e}"));
     assert_eq!(t.dtype(), Dtype::F64, "{key}");
-    let v = t.data().chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().unwrap())).collect();
+    let v = t
+        .data()
+        .chunks_exact(8)
+        .map(|b| f64::from_le_bytes(b.try_into().unwrap()))
+        .collect();
     (t.shape().to_vec(), v)
 }
 
 fn read_i64(st: &SafeTensors<'_>, key: &str) -> Vec<i64> {
-    let t = st.tensor(key).unwrap_or_else(|e| panic!("{FIXTURE}: missing tensor {key}: {e}"));
+    let t = st
+        .tensor(key)
+        .unwrap_or_else(|e| panic!("{FIXTURE}: missing tensor {key}: {e}"));
     assert_eq!(t.dtype(), Dtype::I64, "{key}");
-    t.data().chunks_exact(8).map(|b| i64::from_le_bytes(b.try_into().unwrap())).collect()
+    t.data()
+        .chunks_exact(8)
+        .map(|b| i64::from_le_bytes(b.try_into().unwrap()))
+        .collect()
 }
 
 fn cams_3x4(shape: &[usize], v: &[f64]) -> Vec<Matrix3x4<f64>> {
@@ -41,7 +55,17 @@ fn fixture_problem(st: &SafeTensors<'_>, prefix: &str) -> BaProblem {
     // COLMAP principal point = pixel-centre principal point + 0.5.
     assert_eq!(params[2] - 0.5, (w as f64 - 1.0) / 2.0);
     assert_eq!(params[3] - 0.5, (h as f64 - 1.0) / 2.0);
-    let k = Matrix3::new(params[0], 0.0, params[2] - 0.5, 0.0, params[1], params[3] - 0.5, 0.0, 0.0, 1.0);
+    let k = Matrix3::new(
+        params[0],
+        0.0,
+        params[2] - 0.5,
+        0.0,
+        params[1],
+        params[3] - 0.5,
+        0.0,
+        0.0,
+        1.0,
+    );
     let observations = (0..img.len())
         .map(|i| BaObservation {
             view: (img[i] - 1) as usize,
@@ -52,7 +76,10 @@ fn fixture_problem(st: &SafeTensors<'_>, prefix: &str) -> BaProblem {
     BaProblem {
         intrinsics: vec![k; cam_from_world.len()],
         cam_from_world,
-        points: pts.chunks_exact(3).map(|p| Point3::new(p[0], p[1], p[2])).collect(),
+        points: pts
+            .chunks_exact(3)
+            .map(|p| Point3::new(p[0], p[1], p[2]))
+            .collect(),
         observations,
         model: CameraModel::Pinhole,
         shared_camera: true,
@@ -103,12 +130,26 @@ fn check_fixture(prefix: &str) {
     assert!(official.success, "{}", official.message);
     assert_eq!(official.num_active_observations, problem.observations.len());
     let rel0 = (official.initial_cost - init_cost[0]).abs() / init_cost[0];
-    assert!(rel0 < 1e-8, "{prefix}: initial cost {} vs Ceres {} (rel {rel0:e})", official.initial_cost, init_cost[0]);
+    assert!(
+        rel0 < 1e-8,
+        "{prefix}: initial cost {} vs Ceres {} (rel {rel0:e})",
+        official.initial_cost,
+        init_cost[0]
+    );
     let rel100 = (official.final_cost - final_cost[0]).abs() / final_cost[0];
-    assert!(rel100 < 1e-6, "{prefix}: 100-iteration cost {} vs Ceres {} (rel {rel100:e})", official.final_cost, final_cost[0]);
+    assert!(
+        rel100 < 1e-6,
+        "{prefix}: 100-iteration cost {} vs Ceres {} (rel {rel100:e})",
+        official.final_cost,
+        final_cost[0]
+    );
 
     // 2. Converged (tight tolerance): the converged reference optimum.
-    let opts = BaOptions { function_tolerance: 1e-10, max_iterations: 500, ..BaOptions::official() };
+    let opts = BaOptions {
+        function_tolerance: 1e-10,
+        max_iterations: 500,
+        ..BaOptions::official()
+    };
     let report = bundle_adjust(&problem, &opts).unwrap();
     assert!(report.success, "{}", report.message);
     let rel = (report.final_cost - ref_cost[0]) / ref_cost[0];
@@ -121,11 +162,24 @@ fn check_fixture(prefix: &str) {
         report.message
     );
     let k = &report.intrinsics[0];
-    assert!((k[(0, 0)] - ref_params[0]).abs() < 1e-2, "fx {} vs {}", k[(0, 0)], ref_params[0]);
-    assert!((k[(1, 1)] - ref_params[1]).abs() < 1e-2, "fy {} vs {}", k[(1, 1)], ref_params[1]);
+    assert!(
+        (k[(0, 0)] - ref_params[0]).abs() < 1e-2,
+        "fx {} vs {}",
+        k[(0, 0)],
+        ref_params[0]
+    );
+    assert!(
+        (k[(1, 1)] - ref_params[1]).abs() < 1e-2,
+        "fy {} vs {}",
+        k[(1, 1)],
+        ref_params[1]
+    );
     assert_eq!((k[(0, 2)], k[(1, 2)]), (27.5, 20.5));
     let drot = max_relative_rotation_error(&report.cam_from_world, &ref_cams);
-    assert!(drot < 1e-2, "{prefix}: relative rotations differ by {drot} deg");
+    assert!(
+        drot < 1e-2,
+        "{prefix}: relative rotations differ by {drot} deg"
+    );
 
     // 3. Project defaults (two-camera gauge, function tolerance 1e-6): view 0 unchanged, a cost
     // within 0.2 % of the reference (the Cauchy(0.1 px) problem has several local minima: with the
@@ -134,12 +188,22 @@ fn check_fixture(prefix: &str) {
     assert!(default.success, "{}", default.message);
     assert!((default.initial_cost - official.initial_cost).abs() < 1e-12 * official.initial_cost);
     let reld = (default.final_cost - ref_cost[0]) / ref_cost[0];
-    assert!(reld.abs() < 2e-3, "{prefix}: default options final cost {} (rel {reld:e})", default.final_cost);
+    assert!(
+        reld.abs() < 2e-3,
+        "{prefix}: default options final cost {} (rel {reld:e})",
+        default.final_cost
+    );
     let r0 = orthonormalize_rotation(&rotation(&problem.cam_from_world[0]));
     assert!((rotation(&default.cam_from_world[0]) - r0).amax() < 1e-15);
-    assert_eq!(default.cam_from_world[0].column(3), problem.cam_from_world[0].column(3));
+    assert_eq!(
+        default.cam_from_world[0].column(3),
+        problem.cam_from_world[0].column(3)
+    );
     let drot = max_relative_rotation_error(&default.cam_from_world, &ref_cams);
-    assert!(drot < 0.1, "{prefix}: default options: relative rotations differ by {drot} deg");
+    assert!(
+        drot < 0.1,
+        "{prefix}: default options: relative rotations differ by {drot} deg"
+    );
 }
 
 #[test]
@@ -157,7 +221,12 @@ fn loss_values_match_spec_table() {
     // sfm.md §7.1: ||r|| = 0.05 -> 0.0022, 0.1 -> 0.0069, 1 -> 0.0462, 10 -> 0.0921 (rho/... per
     // the spec's table of ρ(s) with a = 0.1), weights 0.8, 0.5, 0.0099, 1e-4.
     let loss = LossFunction::Cauchy { scale: 0.1 };
-    for (r, rho, wgt) in [(0.05, 0.0022, 0.8), (0.1, 0.0069, 0.5), (1.0, 0.0462, 0.0099), (10.0, 0.0921, 1e-4)] {
+    for (r, rho, wgt) in [
+        (0.05, 0.0022, 0.8),
+        (0.1, 0.0069, 0.5),
+        (1.0, 0.0462, 0.0099),
+        (10.0, 0.0921, 1e-4),
+    ] {
         let (v, d) = loss.evaluate(r * r);
         assert!((v - rho).abs() < 1e-4, "rho({r}) = {v}");
         assert!((d - wgt).abs() / wgt < 0.01, "rho'({r}) = {d}");
@@ -175,13 +244,22 @@ fn orthonormalization_of_f32_rotation() {
 }
 
 /// Solves a synthetic problem with the given model / camera sharing / loss.
-fn synthetic(cfg: &SyntheticConfig, model: CameraModel, shared: bool, loss: LossFunction) -> (SyntheticBa, BaReport) {
+fn synthetic(
+    cfg: &SyntheticConfig,
+    model: CameraModel,
+    shared: bool,
+    loss: LossFunction,
+) -> (SyntheticBa, BaReport) {
     let mut s = generate(cfg);
     s.problem.model = model;
     s.problem.shared_camera = shared;
     s.problem.loss = loss;
     // Cauchy(0.1 px) IRLS converges linearly from a 2 % focal error: allow more iterations.
-    let opts = BaOptions { max_iterations: 1000, function_tolerance: 1e-9, ..BaOptions::default() };
+    let opts = BaOptions {
+        max_iterations: 1000,
+        function_tolerance: 1e-9,
+        ..BaOptions::default()
+    };
     let report = bundle_adjust(&s.problem, &opts).unwrap();
     (s, report)
 }
@@ -189,7 +267,15 @@ fn synthetic(cfg: &SyntheticConfig, model: CameraModel, shared: bool, loss: Loss
 use super::synthetic::SyntheticBa;
 
 fn small_cfg(seed: u64) -> SyntheticConfig {
-    SyntheticConfig { views: 4, points: 1000, track_length: 4, focal_noise: 0.02, perturb_first_view: true, seed, ..Default::default() }
+    SyntheticConfig {
+        views: 4,
+        points: 1000,
+        track_length: 4,
+        focal_noise: 0.02,
+        perturb_first_view: true,
+        seed,
+        ..Default::default()
+    }
 }
 
 #[test]
@@ -200,20 +286,39 @@ fn synthetic_recovers_ground_truth() {
         (CameraModel::Pinhole, true, LossFunction::Trivial, 0.5),
         (CameraModel::SimplePinhole, true, LossFunction::Trivial, 0.5),
         (CameraModel::Pinhole, false, LossFunction::Trivial, 0.5),
-        (CameraModel::Pinhole, true, LossFunction::Cauchy { scale: 0.1 }, 0.05),
+        (
+            CameraModel::Pinhole,
+            true,
+            LossFunction::Cauchy { scale: 0.1 },
+            0.05,
+        ),
     ] {
-        let cfg = SyntheticConfig { pixel_noise: noise, views: 6, points: 1500, ..small_cfg(7) };
+        let cfg = SyntheticConfig {
+            pixel_noise: noise,
+            views: 6,
+            points: 1500,
+            ..small_cfg(7)
+        };
         let (s, report) = synthetic(&cfg, model, shared, loss);
         assert!(report.success, "{}", report.message);
         assert!(report.final_cost < report.initial_cost);
         let init_err = max_relative_rotation_error(&s.problem.cam_from_world, &s.gt_cam_from_world);
         let err = max_relative_rotation_error(&report.cam_from_world, &s.gt_cam_from_world);
         assert!(init_err > 0.3, "perturbation too small: {init_err}");
-        assert!(err < 0.05, "{model:?} shared={shared} {loss:?}: rotation error {err} deg ({})", report.message);
+        assert!(
+            err < 0.05,
+            "{model:?} shared={shared} {loss:?}: rotation error {err} deg ({})",
+            report.message
+        );
         for k in &report.intrinsics {
             for f in [k[(0, 0)], k[(1, 1)]] {
                 let rel = (f - s.gt_focal).abs() / s.gt_focal;
-                assert!(rel < 1e-3, "{model:?} shared={shared} {loss:?}: focal {f} vs {} ({rel:e}, {})", s.gt_focal, report.message);
+                assert!(
+                    rel < 1e-3,
+                    "{model:?} shared={shared} {loss:?}: focal {f} vs {} ({rel:e}, {})",
+                    s.gt_focal,
+                    report.message
+                );
             }
             assert_eq!((k[(0, 2)], k[(1, 2)]), (511.5, 383.5));
         }
@@ -223,8 +328,10 @@ fn synthetic_recovers_ground_truth() {
         let c0 = centre(&report.cam_from_world[0]);
         let g0 = centre(&s.gt_cam_from_world[0]);
         for v in 1..report.cam_from_world.len() {
-            let a: Vector3<f64> = rotation(&report.cam_from_world[0]) * (centre(&report.cam_from_world[v]) - c0);
-            let b: Vector3<f64> = rotation(&s.gt_cam_from_world[0]) * (centre(&s.gt_cam_from_world[v]) - g0);
+            let a: Vector3<f64> =
+                rotation(&report.cam_from_world[0]) * (centre(&report.cam_from_world[v]) - c0);
+            let b: Vector3<f64> =
+                rotation(&s.gt_cam_from_world[0]) * (centre(&s.gt_cam_from_world[v]) - g0);
             let ang = a.angle(&b).to_degrees();
             assert!(ang < 0.2, "view {v}: baseline direction error {ang} deg");
         }
@@ -233,10 +340,17 @@ fn synthetic_recovers_ground_truth() {
 
 #[test]
 fn synthetic_exact_data_reaches_zero_cost() {
-    let cfg = SyntheticConfig { pixel_noise: 0.0, ..small_cfg(3) };
+    let cfg = SyntheticConfig {
+        pixel_noise: 0.0,
+        ..small_cfg(3)
+    };
     let (s, report) = synthetic(&cfg, CameraModel::Pinhole, true, LossFunction::Trivial);
     assert!(report.success, "{}", report.message);
-    assert!(report.final_cost < 1e-12 * report.initial_cost.max(1.0), "final cost {}", report.final_cost);
+    assert!(
+        report.final_cost < 1e-12 * report.initial_cost.max(1.0),
+        "final cost {}",
+        report.final_cost
+    );
     let err = max_relative_rotation_error(&report.cam_from_world, &s.gt_cam_from_world);
     assert!(err < 1e-4, "rotation error {err}");
 }
@@ -245,25 +359,47 @@ fn synthetic_exact_data_reaches_zero_cost() {
 fn free_gauge_also_converges() {
     let mut s = generate(&small_cfg(11));
     s.problem.loss = LossFunction::Trivial;
-    let opts = BaOptions { fix_gauge: false, ..BaOptions::default() };
+    let opts = BaOptions {
+        fix_gauge: false,
+        ..BaOptions::default()
+    };
     let free = bundle_adjust(&s.problem, &opts).unwrap();
     let fixed = bundle_adjust(&s.problem, &BaOptions::default()).unwrap();
     assert!(free.success && fixed.success);
     let rel = (free.final_cost - fixed.final_cost).abs() / fixed.final_cost;
-    assert!(rel < 1e-4, "free gauge {} vs fixed {}", free.final_cost, fixed.final_cost);
+    assert!(
+        rel < 1e-4,
+        "free gauge {} vs fixed {}",
+        free.final_cost,
+        fixed.final_cost
+    );
 }
 
 #[test]
 fn sequential_and_parallel_agree() {
-    let cfg = SyntheticConfig { points: 1100, track_length: 4, ..small_cfg(5) };
+    let cfg = SyntheticConfig {
+        points: 1100,
+        track_length: 4,
+        ..small_cfg(5)
+    };
     let s = generate(&cfg);
     let par = bundle_adjust(&s.problem, &BaOptions::default()).unwrap();
-    let seq = bundle_adjust(&s.problem, &BaOptions { parallel: false, ..BaOptions::default() }).unwrap();
+    let seq = bundle_adjust(
+        &s.problem,
+        &BaOptions {
+            parallel: false,
+            ..BaOptions::default()
+        },
+    )
+    .unwrap();
     assert!(par.success && seq.success);
     // same chunks, summed in the same order: bit-identical whatever the thread count
     assert_eq!(par.final_cost.to_bits(), seq.final_cost.to_bits());
     assert_eq!(par.cam_from_world, seq.cam_from_world);
-    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
     let single = one.install(|| bundle_adjust(&s.problem, &BaOptions::default()).unwrap());
     assert_eq!(single.cam_from_world, par.cam_from_world);
     assert_eq!(single.intrinsics, par.intrinsics);
@@ -310,7 +446,12 @@ fn all_points_behind_cameras_fails_without_nan() {
 fn bad_start_stays_finite() {
     // Half of the points behind the cameras, wild focal, large pose errors, NaN point, gross
     // outlier observations: finite output and no increase of the cost.
-    let cfg = SyntheticConfig { rotation_noise_deg: 10.0, translation_noise: 1.0, focal_noise: 0.5, ..small_cfg(9) };
+    let cfg = SyntheticConfig {
+        rotation_noise_deg: 10.0,
+        translation_noise: 1.0,
+        focal_noise: 0.5,
+        ..small_cfg(9)
+    };
     let mut s = generate(&cfg);
     for (i, p) in s.problem.points.iter_mut().enumerate() {
         if i % 2 == 0 {
@@ -326,10 +467,29 @@ fn bad_start_stays_finite() {
     let report = bundle_adjust(&s.problem, &BaOptions::default()).unwrap();
     assert!(report.final_cost <= report.initial_cost);
     assert!(report.final_cost.is_finite());
-    assert!(report.cam_from_world.iter().all(|m| m.iter().all(|x| x.is_finite())));
-    assert!(report.intrinsics.iter().all(|m| m.iter().all(|x| x.is_finite())));
-    assert!(report.points[1].x.is_nan(), "excluded point returned unchanged");
-    assert!(report.points.iter().enumerate().all(|(i, p)| i == 1 || p.iter().all(|x| x.is_finite())));
+    assert!(
+        report
+            .cam_from_world
+            .iter()
+            .all(|m| m.iter().all(|x| x.is_finite()))
+    );
+    assert!(
+        report
+            .intrinsics
+            .iter()
+            .all(|m| m.iter().all(|x| x.is_finite()))
+    );
+    assert!(
+        report.points[1].x.is_nan(),
+        "excluded point returned unchanged"
+    );
+    assert!(
+        report
+            .points
+            .iter()
+            .enumerate()
+            .all(|(i, p)| i == 1 || p.iter().all(|x| x.is_finite()))
+    );
 }
 
 #[test]
@@ -358,18 +518,28 @@ fn malformed_problems_are_errors() {
     assert!(bundle_adjust(&p, &BaOptions::default()).is_err());
 }
 
-
-
-
 #[test]
 fn levenberg_damping_converges() {
-    let cfg = SyntheticConfig { pixel_noise: 0.0, focal_noise: 0.0, ..small_cfg(12) };
+    let cfg = SyntheticConfig {
+        pixel_noise: 0.0,
+        focal_noise: 0.0,
+        ..small_cfg(12)
+    };
     let mut s = generate(&cfg);
     s.problem.loss = LossFunction::Trivial;
-    let opts = BaOptions { damping: Damping::Levenberg, function_tolerance: 1e-12, ..BaOptions::default() };
+    let opts = BaOptions {
+        damping: Damping::Levenberg,
+        function_tolerance: 1e-12,
+        ..BaOptions::default()
+    };
     let report = bundle_adjust(&s.problem, &opts).unwrap();
     assert!(report.success, "{}", report.message);
-    assert!(report.final_cost < 1e-8 * report.initial_cost, "{} -> {}", report.initial_cost, report.final_cost);
+    assert!(
+        report.final_cost < 1e-8 * report.initial_cost,
+        "{} -> {}",
+        report.initial_cost,
+        report.final_cost
+    );
     let err = max_relative_rotation_error(&report.cam_from_world, &s.gt_cam_from_world);
     assert!(err < 1e-3, "rotation error {err}");
 }

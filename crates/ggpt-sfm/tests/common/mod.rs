@@ -5,13 +5,15 @@ pub mod synth;
 
 use std::path::PathBuf;
 
+use ggpt_core::io::st::StFile;
 use ggpt_core::{Cameras, Dims};
 use ggpt_sfm::input::cameras_from_flat;
 use ggpt_sfm::matches::Correspondences;
-use ggpt_sfm::st::StFile;
 
 pub fn fixture(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/sfm_small").join(name)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../../shared/fixtures/sfm_small")
+        .join(name)
 }
 
 pub struct Fx {
@@ -21,26 +23,53 @@ pub struct Fx {
 }
 
 pub fn open() -> Fx {
-    let inputs = StFile::open(&fixture("inputs.safetensors")).unwrap_or_else(|e| panic!("fixture missing: {e}"));
-    let steps = StFile::open(&fixture("steps.safetensors")).unwrap_or_else(|e| panic!("fixture missing: {e}"));
-    let p = inputs.f32("ff/points").unwrap();
-    let dims = Dims { n: p.shape[0], h: p.shape[1], w: p.shape[2] };
-    Fx { inputs, steps, dims }
+    let inputs = StFile::open(&fixture("inputs.safetensors"))
+        .unwrap_or_else(|e| panic!("fixture missing: {e}"));
+    let steps = StFile::open(&fixture("steps.safetensors"))
+        .unwrap_or_else(|e| panic!("fixture missing: {e}"));
+    let p = inputs.f32_tensor("ff/points").unwrap();
+    let dims = Dims {
+        n: p.shape[0],
+        h: p.shape[1],
+        w: p.shape[2],
+    };
+    Fx {
+        inputs,
+        steps,
+        dims,
+    }
 }
 
 impl Fx {
     pub fn f32(&self, key: &str) -> Vec<f32> {
-        let f = if key.starts_with("ff/") || key.starts_with("match/") || key.starts_with("gt/") || key.starts_with("config/") { &self.inputs } else { &self.steps };
-        f.f32(key).unwrap_or_else(|e| panic!("{e}")).data
+        let f = if key.starts_with("ff/")
+            || key.starts_with("match/")
+            || key.starts_with("gt/")
+            || key.starts_with("config/")
+        {
+            &self.inputs
+        } else {
+            &self.steps
+        };
+        f.f32_tensor(key).unwrap_or_else(|e| panic!("{e}")).data
     }
     pub fn f64(&self, key: &str) -> Vec<f64> {
-        self.steps.f64(key).unwrap_or_else(|e| panic!("{e}")).data
+        self.steps
+            .f64_tensor(key)
+            .unwrap_or_else(|e| panic!("{e}"))
+            .data
     }
     pub fn i64(&self, key: &str) -> Vec<i64> {
-        self.steps.i64(key).unwrap_or_else(|e| panic!("{e}")).data
+        self.steps
+            .i64_tensor(key)
+            .unwrap_or_else(|e| panic!("{e}"))
+            .data
     }
     pub fn bool(&self, key: &str) -> Vec<bool> {
-        self.steps.bool(key).unwrap_or_else(|e| panic!("{e}")).data
+        self.steps
+            .bool_tensor(key)
+            .unwrap_or_else(|e| panic!("{e}"))
+            .data
     }
 
     /// `cycle/m{m}/*` converted to the target-major layout.
@@ -61,7 +90,8 @@ impl Fx {
     pub fn ensembled(&self) -> Correspondences {
         let (n, hw) = (self.dims.n, self.dims.hw());
         let sets = [self.cycle_set(0), self.cycle_set(1)];
-        let sel = Correspondences::transpose_pairs(&self.i64("ensemble/selected_idx"), n, hw, 1).unwrap();
+        let sel =
+            Correspondences::transpose_pairs(&self.i64("ensemble/selected_idx"), n, hw, 1).unwrap();
         let mut out = sets[0].clone();
         for i in 0..out.entries() {
             let s = &sets[sel[i] as usize];
@@ -121,49 +151,118 @@ pub fn check_colmap_model(dir: &std::path::Path, allow_behind: bool) -> ColmapCh
     use std::collections::{HashMap, HashSet};
     let model = read_colmap(dir).unwrap_or_else(|e| panic!("reading {}: {e}", dir.display()));
     let (cams, _) = model.to_cameras(dir).unwrap_or_else(|e| panic!("{e}"));
-    let img_index: HashMap<u32, usize> = model.images.iter().enumerate().map(|(i, im)| (im.id, i)).collect();
+    let img_index: HashMap<u32, usize> = model
+        .images
+        .iter()
+        .enumerate()
+        .map(|(i, im)| (im.id, i))
+        .collect();
     assert_eq!(img_index.len(), model.images.len(), "duplicate image ids");
-    let pt_index: HashMap<u64, usize> = model.points3d.iter().enumerate().map(|(i, p)| (p.id, i)).collect();
+    let pt_index: HashMap<u64, usize> = model
+        .points3d
+        .iter()
+        .enumerate()
+        .map(|(i, p)| (p.id, i))
+        .collect();
     assert_eq!(pt_index.len(), model.points3d.len(), "duplicate point ids");
     let mut observations = 0;
     for im in &model.images {
         for (idx, p2) in im.points2d.iter().enumerate() {
             if let Some(pid) = p2.point3d_id {
                 observations += 1;
-                let &pi = pt_index.get(&pid).unwrap_or_else(|| panic!("image {} POINTS2D[{idx}] names point {pid}, which does not exist", im.id));
-                assert!(model.points3d[pi].track.contains(&(im.id, idx as u32)), "point {pid}'s track lacks (image {}, {idx})", im.id);
+                let &pi = pt_index.get(&pid).unwrap_or_else(|| {
+                    panic!(
+                        "image {} POINTS2D[{idx}] names point {pid}, which does not exist",
+                        im.id
+                    )
+                });
+                assert!(
+                    model.points3d[pi].track.contains(&(im.id, idx as u32)),
+                    "point {pid}'s track lacks (image {}, {idx})",
+                    im.id
+                );
             }
         }
     }
     let mut errors = Vec::new();
     for p in &model.points3d {
-        assert!(p.track.len() >= 2, "point {}: track of length {}", p.id, p.track.len());
+        assert!(
+            p.track.len() >= 2,
+            "point {}: track of length {}",
+            p.id,
+            p.track.len()
+        );
         let distinct: HashSet<u32> = p.track.iter().map(|t| t.0).collect();
-        assert_eq!(distinct.len(), p.track.len(), "point {}: two observations in one image", p.id);
+        assert_eq!(
+            distinct.len(),
+            p.track.len(),
+            "point {}: two observations in one image",
+            p.id
+        );
         let x = nalgebra::Vector3::from(p.xyz);
-        assert!(x.iter().all(|c| c.is_finite()), "point {}: non-finite", p.id);
+        assert!(
+            x.iter().all(|c| c.is_finite()),
+            "point {}: non-finite",
+            p.id
+        );
         let mut sum = 0.0;
         for &(iid, idx) in &p.track {
-            let &v = img_index.get(&iid).unwrap_or_else(|| panic!("point {}: unknown image {iid}", p.id));
-            let p2 = model.images[v].points2d.get(idx as usize).unwrap_or_else(|| panic!("point {}: image {iid} has no POINTS2D[{idx}]", p.id));
-            assert_eq!(p2.point3d_id, Some(p.id), "point {}: image {iid} POINTS2D[{idx}] points elsewhere", p.id);
+            let &v = img_index
+                .get(&iid)
+                .unwrap_or_else(|| panic!("point {}: unknown image {iid}", p.id));
+            let p2 = model.images[v]
+                .points2d
+                .get(idx as usize)
+                .unwrap_or_else(|| panic!("point {}: image {iid} has no POINTS2D[{idx}]", p.id));
+            assert_eq!(
+                p2.point3d_id,
+                Some(p.id),
+                "point {}: image {iid} POINTS2D[{idx}] points elsewhere",
+                p.id
+            );
             let c = cams.rotation(v) * x + cams.translation(v);
-            assert!(allow_behind || c.z > 0.0, "point {} behind camera of image {iid}", p.id);
+            assert!(
+                allow_behind || c.z > 0.0,
+                "point {} behind camera of image {iid}",
+                p.id
+            );
             let k = &cams.intrinsics[v];
-            let uv = [k[(0, 0)] * c.x / c.z + k[(0, 2)], k[(1, 1)] * c.y / c.z + k[(1, 2)]];
+            let uv = [
+                k[(0, 0)] * c.x / c.z + k[(0, 2)],
+                k[(1, 1)] * c.y / c.z + k[(1, 2)],
+            ];
             let obs = colmap_to_pixel(p2.xy);
             let e = ((uv[0] - obs[0]).powi(2) + (uv[1] - obs[1]).powi(2)).sqrt();
             sum += e;
             errors.push(e);
         }
         let mean = sum / p.track.len() as f64;
-        assert!((p.error - mean).abs() < 1e-6, "point {}: stored error {} vs recomputed {mean}", p.id, p.error);
+        assert!(
+            (p.error - mean).abs() < 1e-6,
+            "point {}: stored error {} vs recomputed {mean}",
+            p.id,
+            p.error
+        );
     }
     let track_sum: usize = model.points3d.iter().map(|p| p.track.len()).sum();
-    assert_eq!(observations, track_sum, "POINTS2D with an id vs track elements");
+    assert_eq!(
+        observations, track_sum,
+        "POINTS2D with an id vs track elements"
+    );
     let max_error = errors.iter().copied().fold(0.0, f64::max);
-    let mean_error = if errors.is_empty() { f64::NAN } else { errors.iter().sum::<f64>() / errors.len() as f64 };
-    ColmapCheck { points: model.points3d.len(), observations, errors, max_error, mean_error, model }
+    let mean_error = if errors.is_empty() {
+        f64::NAN
+    } else {
+        errors.iter().sum::<f64>() / errors.len() as f64
+    };
+    ColmapCheck {
+        points: model.points3d.len(),
+        observations,
+        errors,
+        max_error,
+        mean_error,
+        model,
+    }
 }
 
 /// Compares a model written from our BA of `sfm_small` (all 93 BA tracks written, ids `1..=93` in
@@ -175,7 +274,10 @@ pub fn check_colmap_model(dir: &std::path::Path, allow_behind: bool) -> ColmapCh
 pub fn compare_with_ceres(fx: &Fx, chk: &ColmapCheck, prefix: &str) -> (f64, f64) {
     let want = fx.f64(&format!("{prefix}/final_points3D"));
     let want_err = fx.f64(&format!("{prefix}/final_reproj_error"));
-    let (obs_pid, obs_img) = (fx.i64(&format!("{prefix}/obs_point3D_id")), fx.i64(&format!("{prefix}/obs_image_id")));
+    let (obs_pid, obs_img) = (
+        fx.i64(&format!("{prefix}/obs_point3D_id")),
+        fx.i64(&format!("{prefix}/obs_image_id")),
+    );
     let np = want.len() / 3;
     assert_eq!(chk.points, np, "points written vs Ceres' BA points");
     let mut ours = std::collections::HashMap::new();
@@ -192,19 +294,47 @@ pub fn compare_with_ceres(fx: &Fx, chk: &ColmapCheck, prefix: &str) -> (f64, f64
         match ours.get(&(obs_pid[o], obs_img[o])) {
             Some(e) => de = de.max((e - want_err[o]).abs()),
             None => {
-                assert!(want_err[o] > 4.0, "observation (point {}, image {}) missing, Ceres error {}", obs_pid[o], obs_img[o], want_err[o]);
+                assert!(
+                    want_err[o] > 4.0,
+                    "observation (point {}, image {}) missing, Ceres error {}",
+                    obs_pid[o],
+                    obs_img[o],
+                    want_err[o]
+                );
                 dropped += 1;
             }
         }
     }
-    assert_eq!(want_err.iter().filter(|&&e| e > 4.0).count(), dropped, "observations above 4 px");
+    assert_eq!(
+        want_err.iter().filter(|&&e| e > 4.0).count(),
+        dropped,
+        "observations above 4 px"
+    );
     assert_eq!(chk.observations + dropped, want_err.len());
-    let src: Vec<_> = chk.model.points3d.iter().map(|p| nalgebra::Point3::from(p.xyz)).collect();
-    let tgt: Vec<_> = (0..np).map(|i| nalgebra::Point3::new(want[3 * i], want[3 * i + 1], want[3 * i + 2])).collect();
+    let src: Vec<_> = chk
+        .model
+        .points3d
+        .iter()
+        .map(|p| nalgebra::Point3::from(p.xyz))
+        .collect();
+    let tgt: Vec<_> = (0..np)
+        .map(|i| nalgebra::Point3::new(want[3 * i], want[3 * i + 1], want[3 * i + 2]))
+        .collect();
     let sim = ggpt_core::sim3::umeyama(&src, &tgt).unwrap();
     let scale = tgt.iter().map(|p| p.coords.norm()).sum::<f64>() / np as f64;
-    let dp = src.iter().zip(&tgt).map(|(a, b)| (sim.apply(a) - b).norm()).fold(0.0, f64::max) / scale;
-    assert!(de < 5e-3, "observation errors differ from Ceres' by up to {de} px");
-    assert!(dp < 1e-3, "BA points differ from Ceres' by up to {dp} (relative, after Sim(3))");
+    let dp = src
+        .iter()
+        .zip(&tgt)
+        .map(|(a, b)| (sim.apply(a) - b).norm())
+        .fold(0.0, f64::max)
+        / scale;
+    assert!(
+        de < 5e-3,
+        "observation errors differ from Ceres' by up to {de} px"
+    );
+    assert!(
+        dp < 1e-3,
+        "BA points differ from Ceres' by up to {dp} (relative, after Sim(3))"
+    );
     (de, dp)
 }

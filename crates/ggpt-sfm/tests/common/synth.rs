@@ -18,7 +18,11 @@ pub struct Synth {
 fn plane_hit(c: &Vector3<f64>, d: &Vector3<f64>) -> Option<Vector3<f64>> {
     // plane z = 5 + 0.2 x and a sphere of radius 0.9 at (0.6, 0.1, 4.0) (world frame): nearest hit
     let denom = d.z - 0.2 * d.x;
-    let mut best = if denom.abs() < 1e-9 { f64::INFINITY } else { (5.0 + 0.2 * c.x - c.z) / denom };
+    let mut best = if denom.abs() < 1e-9 {
+        f64::INFINITY
+    } else {
+        (5.0 + 0.2 * c.x - c.z) / denom
+    };
     if best <= 0.0 {
         best = f64::INFINITY;
     }
@@ -31,13 +35,27 @@ fn plane_hit(c: &Vector3<f64>, d: &Vector3<f64>) -> Option<Vector3<f64>> {
             best = s;
         }
     }
-    if best.is_finite() { Some(c + d * best) } else { None }
+    if best.is_finite() {
+        Some(c + d * best)
+    } else {
+        None
+    }
 }
 
 pub fn synth(n: usize, h: usize, w: usize) -> Synth {
     let dims = Dims { n, h, w };
     let f = 0.9 * w as f64;
-    let k = Matrix3::new(f, 0.0, (w as f64 - 1.0) / 2.0, 0.0, f, (h as f64 - 1.0) / 2.0, 0.0, 0.0, 1.0);
+    let k = Matrix3::new(
+        f,
+        0.0,
+        (w as f64 - 1.0) / 2.0,
+        0.0,
+        f,
+        (h as f64 - 1.0) / 2.0,
+        0.0,
+        0.0,
+        1.0,
+    );
     let mut ext = Vec::new();
     for v in 0..n {
         let cx = 0.6 * v as f64;
@@ -49,7 +67,10 @@ pub fn synth(n: usize, h: usize, w: usize) -> Synth {
         e.set_column(3, &t);
         ext.push(e);
     }
-    let gt = Cameras { cam_from_world: ext.clone(), intrinsics: vec![k; n] };
+    let gt = Cameras {
+        cam_from_world: ext.clone(),
+        intrinsics: vec![k; n],
+    };
     let hw = h * w;
     // world point of every pixel
     let mut pts = vec![[0f64; 3]; n * hw];
@@ -77,7 +98,8 @@ pub fn synth(n: usize, h: usize, w: usize) -> Synth {
                     let e = ((kk * 7 + s * 3 + t) % 11) as f64 / 11.0 - 0.5;
                     pm[2 * i] = (q.x + 0.004 * e) as f32;
                     pm[2 * i + 1] = (q.y - 0.003 * e) as f32;
-                    let inside = q.x > -0.5 && q.y > -0.5 && q.x < w as f64 - 0.5 && q.y < h as f64 - 0.5;
+                    let inside =
+                        q.x > -0.5 && q.y > -0.5 && q.x < w as f64 - 0.5 && q.y < h as f64 - 0.5;
                     ps[i] = if inside { 0.9 } else { 0.0 };
                 } else {
                     pm[2 * i] = -100.0;
@@ -87,7 +109,10 @@ pub fn synth(n: usize, h: usize, w: usize) -> Synth {
         }
     }
     // feed-forward: exact points, perturbed cameras and focal
-    let points: Vec<f32> = pts.iter().flat_map(|p| p.iter().map(|&v| v as f32)).collect();
+    let points: Vec<f32> = pts
+        .iter()
+        .flat_map(|p| p.iter().map(|&v| v as f32))
+        .collect();
     let mut ff_ext = ext.clone();
     for (v, e) in ff_ext.iter_mut().enumerate().skip(1) {
         let dr = Rotation3::from_euler_angles(0.004 * v as f64, -0.003, 0.002).into_inner();
@@ -98,15 +123,37 @@ pub fn synth(n: usize, h: usize, w: usize) -> Synth {
     let mut kf = k;
     kf[(0, 0)] *= 1.03;
     kf[(1, 1)] *= 1.03;
-    let ff = FeedForward { points, conf: vec![2.0; n * hw], cameras: Cameras { cam_from_world: ff_ext, intrinsics: vec![kf; n] } };
+    let ff = FeedForward {
+        points,
+        conf: vec![2.0; n * hw],
+        cameras: Cameras {
+            cam_from_world: ff_ext,
+            intrinsics: vec![kf; n],
+        },
+    };
     // texture
     let images: Vec<f32> = (0..n * hw)
         .flat_map(|p| {
             let q = pts[p];
-            let v = (0.5 + 0.25 * (q[0] * 13.0).sin() * (q[1] * 17.0).cos() + 0.2 * (q[0] * 41.0 + q[1] * 29.0).sin()) as f32;
+            let v = (0.5
+                + 0.25 * (q[0] * 13.0).sin() * (q[1] * 17.0).cos()
+                + 0.2 * (q[0] * 41.0 + q[1] * 29.0).sin()) as f32;
             [v, v * 0.9, v * 0.8]
         })
         .collect();
-    let matches = MatchSet { matcher: "synthetic".into(), pred_matches: pm, pred_scores: ps, pred_cycle_error: None, rank_scores: None };
-    Synth { dims, gt_points: pts, gt, ff, images, matches }
+    let matches = MatchSet {
+        matcher: "synthetic".into(),
+        pred_matches: pm,
+        pred_scores: ps,
+        pred_cycle_error: None,
+        rank_scores: None,
+    };
+    Synth {
+        dims,
+        gt_points: pts,
+        gt,
+        ff,
+        images,
+        matches,
+    }
 }

@@ -2,15 +2,14 @@
 //! simulated dense matches) as a project scene directory.
 
 use std::path::PathBuf;
-use std::sync::Mutex;
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use indicatif::{ProgressBar, ProgressStyle};
+use ggpt_cli::{ProgressArgs, SceneKindArg, SyncStageBars};
 use tracing::info;
 
 use ggpt_synth::stats::{match_stats, point_accuracy};
-use ggpt_synth::{PrincipalPoint, SceneKind, Stage, SynthConfig, generate_with_progress};
+use ggpt_synth::{PrincipalPoint, SceneKind, SynthConfig, generate_with_progress};
 
 /// Generate a synthetic multi-view scene with exact ground truth.
 #[derive(Debug, Parser)]
@@ -23,8 +22,8 @@ struct Args {
     #[arg(long, default_value_t = 8)]
     views: usize,
     /// Scene family: `room` (indoor) or `object` (object-centric orbit).
-    #[arg(long, value_enum, default_value_t = Kind::Room)]
-    kind: Kind,
+    #[arg(long, value_enum, default_value_t)]
+    kind: SceneKindArg,
     /// Feed-forward width in pixels (multiple of 14).
     #[arg(long, default_value_t = 518)]
     width: usize,
@@ -55,12 +54,8 @@ struct Args {
     /// Log per-stage timings.
     #[arg(long)]
     timings: bool,
-}
-
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-enum Kind {
-    Room,
-    Object,
+    #[command(flatten)]
+    progress: ProgressArgs,
 }
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -77,16 +72,10 @@ enum Ceiling {
 }
 
 fn main() -> Result<()> {
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
-        .init();
     let args = Args::parse();
+    ggpt_cli::init_logging(args.progress.bars());
     let cfg = SynthConfig {
-        kind: match args.kind {
-            Kind::Room => SceneKind::Room,
-            Kind::Object => SceneKind::Object,
-        },
+        kind: SceneKind::parse(args.kind.name())?,
         views: args.views,
         width: args.width,
         height: args.height,
@@ -104,41 +93,19 @@ fn main() -> Result<()> {
         ..SynthConfig::default()
     };
     info!(name = %cfg.scene_name(), views = cfg.views, w = cfg.width, h = cfg.height, "generating");
-    let bar = Mutex::new(None::<ProgressBar>);
-    let progress = |stage: Stage, ticks: u64| {
-        let Ok(mut guard) = bar.lock() else { return };
-        if ticks > 0 {
-            if let Some(b) = guard.take() {
-                b.finish_and_clear();
-            }
-            // Only the match stage reports ticks; the others show a spinner.
-            let b = if stage == Stage::Matches {
-                let b = ProgressBar::new(ticks);
-                if let Ok(s) = ProgressStyle::with_template("{msg:12} [{bar:40}] {pos}/{len} pairs {elapsed}") {
-                    b.set_style(s.progress_chars("=> "));
-                }
-                b
-            } else {
-                let b = ProgressBar::new_spinner();
-                b.enable_steady_tick(std::time::Duration::from_millis(120));
-                b
-            };
-            b.set_message(format!("{stage:?}"));
-            *guard = Some(b);
-        } else if let Some(b) = guard.as_ref() {
-            b.inc(1);
-        }
-    };
-    let out = generate_with_progress(&cfg, &progress).context("generating the synthetic scene")?;
-    if let Ok(mut guard) = bar.lock()
-        && let Some(b) = guard.take()
-    {
-        b.finish_and_clear();
-    }
+    let bars = SyncStageBars::new();
+    let out = generate_with_progress(&cfg, &|p| bars.report(p))
+        .context("generating the synthetic scene")?;
+    bars.finish();
     let scene = &out.scene;
     let gt = scene.gt.as_ref().context("generator returned no GT")?;
     let valid = gt.mask.iter().filter(|m| **m).count();
-    info!(pixels = scene.dims.pixels(), valid, valid_pct = 100.0 * valid as f64 / scene.dims.pixels() as f64, "ground truth");
+    info!(
+        pixels = scene.dims.pixels(),
+        valid,
+        valid_pct = 100.0 * valid as f64 / scene.dims.pixels() as f64,
+        "ground truth"
+    );
     if args.timings {
         for (stage, secs) in &out.timings {
             info!(stage = %stage, seconds = format!("{secs:.3}"), "timing");
@@ -148,27 +115,35 @@ fn main() -> Result<()> {
         if let Some(ff) = &scene.ff
             && let Some(acc) = point_accuracy(&ff.points, &gt.points, &gt.mask)
         {
-            info!(auc5 = format!("{:.1}", acc.auc5), auc10 = format!("{:.1}", acc.auc10), median_cm = format!("{:.2}", acc.median_cm), "ff points vs GT (trimmed LS Sim(3))");
+            info!(
+                auc5 = format!("{:.1}", acc.auc5),
+                auc10 = format!("{:.1}", acc.auc10),
+                median_cm = format!("{:.2}", acc.median_cm),
+                "ff points vs GT (trimmed LS Sim(3))"
+            );
         }
         for ms in &scene.matches {
             let st = match_stats(ms, scene.dims);
             info!(matcher = %ms.matcher, score_gt_06 = format!("{:.3}", st.score_gt_06), ba_pass = format!("{:.3}", st.ba_pass), dlt_pass = format!("{:.3}", st.dlt_pass), "matches");
         }
     }
-    ggpt_core::io::scene_dir::write_scene(&args.out, scene).with_context(|| format!("writing scene directory {}", args.out.display()))?;
+    ggpt_core::io::scene_dir::write_scene(&args.out, scene)
+        .with_context(|| format!("writing scene directory {}", args.out.display()))?;
     let meta = serde_json::json!({
         "generator": "ggpt-synth",
         "config": cfg,
-        "world_to_ff_frame": (0..3).map(|r| (0..4).map(|c| out.world_to_ff[(r, c)]).collect::<Vec<f64>>()).collect::<Vec<_>>(),
+        "ff_from_world_frame": (0..3).map(|r| (0..4).map(|c| out.ff_from_world[(r, c)]).collect::<Vec<f64>>()).collect::<Vec<_>>(),
         "gt_cam_from_world_ff_frame": out.gt_cameras_ff.cam_from_world.iter()
             .map(|m| (0..3).map(|r| (0..4).map(|c| m[(r, c)]).collect::<Vec<f64>>()).collect::<Vec<_>>()).collect::<Vec<_>>(),
     });
     let meta_path = args.out.join("synth.json");
     let text = serde_json::to_string_pretty(&meta).context("serialising synth.json")?;
-    ggpt_core::io::atomic::write_atomic(&meta_path, |w| w.write_all(text.as_bytes())).with_context(|| format!("writing {}", meta_path.display()))?;
+    ggpt_core::io::atomic::write_atomic(&meta_path, |w| w.write_all(text.as_bytes()))
+        .with_context(|| format!("writing {}", meta_path.display()))?;
     info!(dir = %args.out.display(), "scene written");
     if let Some(path) = &args.official_safetensors {
-        ggpt_core::io::official::write_official_safetensors(path, scene).with_context(|| format!("writing {}", path.display()))?;
+        ggpt_core::io::official::write_official_safetensors(path, scene)
+            .with_context(|| format!("writing {}", path.display()))?;
         info!(file = %path.display(), "official-layout safetensors written");
     }
     Ok(())

@@ -1,4 +1,4 @@
-//! Whole-scene benchmark (`cargo run --release -p ggpt-infer --bin bench_infer -- [options]`):
+//! Whole-scene benchmark (`cargo bench -p ggpt-infer --bench infer -- [options]`):
 //! for each view count, a synthetic room (`ggpt-synth`, 518 x 392 by default) goes through
 //! SfM, pre-alignment + chunking, the network (released configuration, random weights unless
 //! `--weights`), records + fusion, export and evaluation. Prints wall time and peak resident
@@ -8,6 +8,9 @@
 //! once the budget is spent, the remaining chunks bypass the network (their input points are
 //! passed through) and the table reports the measured network time *and* an extrapolation to
 //! all tokens (measured seconds per token × total tokens), clearly marked.
+//!
+//! Logs go to stderr at `RUST_LOG` level (default `info`); `RUST_LOG=warn cargo bench ...` keeps
+//! only the table and warnings.
 
 use std::time::Instant;
 
@@ -24,7 +27,7 @@ use ggpt_synth::{SynthConfig, generate};
 
 /// Benchmark options.
 #[derive(Parser, Debug)]
-#[command(name = "bench_infer", about)]
+#[command(name = "infer", about)]
 struct Args {
     /// View counts to run.
     #[arg(long, value_delimiter = ',', default_value = "4,8,16")]
@@ -53,6 +56,9 @@ struct Args {
     /// Output folder for the exports (a temporary folder when absent).
     #[arg(long)]
     out: Option<std::path::PathBuf>,
+    /// Passed by `cargo bench`; ignored.
+    #[arg(long, hide = true)]
+    bench: bool,
 }
 
 /// Runs the real network until the budget is spent, then passes inputs through.
@@ -69,7 +75,13 @@ impl ChunkRefiner for Budgeted {
         if self.budget_s > 0.0 && self.spent_s >= self.budget_s {
             self.skipped_tokens += chunks.iter().map(ChunkRecord::num_tokens).sum::<usize>();
             self.skipped_chunks += chunks.len();
-            return Ok(chunks.iter().map(|c| RefinedChunk { points: c.ff_pts.clone(), conf: vec![1.0; c.len()] }).collect());
+            return Ok(chunks
+                .iter()
+                .map(|c| RefinedChunk {
+                    points: c.ff_pts.clone(),
+                    conf: vec![1.0; c.len()],
+                })
+                .collect());
         }
         let t = Instant::now();
         let out = self.inner.refine(chunks);
@@ -86,26 +98,33 @@ impl MeasuredRefiner for Budgeted {
 
 fn main() -> Result<()> {
     ggpt_model::device::tune_allocator();
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")))
-        .init();
+    ggpt_cli::init_logging(false);
     let args = Args::parse();
     let cfg = GgptConfig::preset(&args.preset)?;
     let device = device_from_name(&args.device)?;
     let model = Ggpt::new(&cfg, &device);
     let inner = BurnRefiner::new(model, cfg, device)?.with_rss_stages(true);
-    let mut refiner = Budgeted { inner, budget_s: args.network_budget_s, spent_s: 0.0, skipped_tokens: 0, skipped_chunks: 0 };
+    let mut refiner = Budgeted {
+        inner,
+        budget_s: args.network_budget_s,
+        spent_s: 0.0,
+        skipped_tokens: 0,
+        skipped_chunks: 0,
+    };
     let tmp = tempfile::tempdir()?;
     let base = args.out.clone().unwrap_or_else(|| tmp.path().to_path_buf());
     println!(
-        "bench_infer: preset {} (random weights), device {}, {}x{}, max {} tokens/forward, network budget {}",
+        "infer bench: preset {} (random weights), device {}, {}x{}, max {} tokens/forward, network budget {}",
         args.preset,
         args.device,
         args.width,
         args.height,
         args.max_tokens_per_forward,
-        if args.network_budget_s > 0.0 { format!("{} s/scene", args.network_budget_s) } else { "none".into() }
+        if args.network_budget_s > 0.0 {
+            format!("{} s/scene", args.network_budget_s)
+        } else {
+            "none".into()
+        }
     );
     for &views in &args.views {
         refiner.spent_s = 0.0;
@@ -113,8 +132,15 @@ fn main() -> Result<()> {
         refiner.skipped_chunks = 0;
         let mut log = StageLog::new();
         log.start("synth");
-        let synth = generate(&SynthConfig { views, width: args.width, height: args.height, seed: args.seed, matches: true, ..SynthConfig::default() })
-            .context("synthesising")?;
+        let synth = generate(&SynthConfig {
+            views,
+            width: args.width,
+            height: args.height,
+            seed: args.seed,
+            matches: true,
+            ..SynthConfig::default()
+        })
+        .context("synthesising")?;
         let mut scene = synth.scene;
         log.finish();
         let mut opts = RunOptions::default();
@@ -122,13 +148,31 @@ fn main() -> Result<()> {
         opts.refine.max_tokens_per_forward = args.max_tokens_per_forward;
         opts.export.seed = args.seed;
         let out = base.join(format!("views{views}"));
-        let report = run_scene(&mut scene, &mut refiner, &opts, &out, &serde_json::json!({"bench": true}), serde_json::json!({}), &mut log)?;
+        let report = run_scene(
+            &mut scene,
+            &mut refiner,
+            &opts,
+            &out,
+            &serde_json::json!({"bench": true}),
+            serde_json::json!({}),
+            &mut log,
+            &mut ggpt_core::progress::ignore,
+        )?;
         let net = &report.network;
-        println!("\n{views} views: {} chunks, {} tokens, {} forwards run ({} tokens through the network, {} chunks / {} tokens bypassed)",
-            report.refined.chunks.len(), report.refined.total_tokens, net.forwards, net.tokens, refiner.skipped_chunks, refiner.skipped_tokens);
+        println!(
+            "\n{views} views: {} chunks, {} tokens, {} forwards run ({} tokens through the network, {} chunks / {} tokens bypassed)",
+            report.refined.chunks.len(),
+            report.refined.total_tokens,
+            net.forwards,
+            net.tokens,
+            refiner.skipped_chunks,
+            refiner.skipped_tokens
+        );
         println!("{:<20} {:>10} {:>14}", "stage", "seconds", "peak RSS MiB");
         for s in &report.stages {
-            let m = s.peak_rss_mib.map_or("-".to_string(), |m| format!("{m:.0}"));
+            let m = s
+                .peak_rss_mib
+                .map_or("-".to_string(), |m| format!("{m:.0}"));
             println!("{:<20} {:>10.3} {:>14}", s.stage, s.seconds, m);
         }
         if refiner.skipped_tokens > 0 && net.tokens > 0 {
@@ -141,7 +185,10 @@ fn main() -> Result<()> {
             );
         }
         if let Some(e) = &report.evaluation {
-            println!("AUC@5 cm: ff {:.2}, refined {:.2} (random weights: not meaningful)", e.ff.auc_5, e.refined.auc_5);
+            println!(
+                "AUC@5 cm: ff {:.2}, refined {:.2} (random weights: not meaningful)",
+                e.ff.auc_5, e.refined.auc_5
+            );
         }
     }
     Ok(())

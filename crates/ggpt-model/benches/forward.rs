@@ -3,7 +3,7 @@
 //! forward seconds, peak RSS.
 //!
 //! ```text
-//! cargo run --release -p ggpt-model --bin bench_forward -- --tokens 26000 --device flex --threads 1
+//! cargo bench -p ggpt-model --bench forward -- --tokens 26000 --device flex --threads 1
 //! ```
 //! Peak RSS is per process: run one size per invocation for a clean memory figure.
 //! `--chunks N` splits the tokens of a row over `N` chunks (different seeds) in one forward, as
@@ -11,45 +11,59 @@
 
 use std::time::Instant;
 
+use clap::Parser;
 use ggpt_model::bench::{peak_rss_mib, pixels_for_tokens, surface_chunk};
 use ggpt_model::device::device_from_name;
-use ggpt_model::infer::{plan_config, prepare_chunks};
+use ggpt_model::infer::plan_config;
 use ggpt_model::plan::plan_batch;
 use ggpt_model::{Ggpt, GgptConfig, PreparedBatch};
 
-fn usage() -> ! {
-    eprintln!(
-        "usage: bench_forward [--tokens N[,N...]] [--device cpu|ndarray|flex|wgpu] [--threads T] [--preset released|small|tiny] [--repeat R] [--chunks N] [--profile] [--default-allocator]"
-    );
-    std::process::exit(2)
+/// Forward benchmark of the GGPT network (random weights).
+#[derive(Parser, Debug)]
+#[command(name = "forward")]
+struct Args {
+    /// Level-0 tokens per row (comma separated).
+    #[arg(long, value_delimiter = ',', default_value = "26000")]
+    tokens: Vec<usize>,
+    /// Device: `cpu`, `ndarray`, `flex`, `wgpu` (`cuda[:N]` with the `cuda` feature).
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// CPU threads (0: all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Model preset: `released`, `small`, `tiny`.
+    #[arg(long, default_value = "released")]
+    preset: String,
+    /// Runs per size (one row each).
+    #[arg(long, default_value_t = 1)]
+    repeat: usize,
+    /// Chunks the tokens of a row are split over (one forward).
+    #[arg(long, default_value_t = 1,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    chunks: usize,
+    /// Print the wall time per stage (`ggpt_model::profile`) to stderr after each run.
+    #[arg(long)]
+    profile: bool,
+    /// Keep the system allocator settings (no `device::tune_allocator`).
+    #[arg(long)]
+    default_allocator: bool,
+    /// Passed by `cargo bench`; ignored.
+    #[arg(long, hide = true)]
+    bench: bool,
 }
 
 fn main() {
-    let mut tokens = vec![26_000usize];
-    let mut device_name = "cpu".to_string();
-    let mut threads = 0usize;
-    let mut preset = "released".to_string();
-    let mut repeat = 1usize;
-    let mut chunks = 1usize;
-    let mut profile = false;
-    let mut default_allocator = false;
-    let mut args = std::env::args().skip(1);
-    while let Some(a) = args.next() {
-        let mut val = || args.next().unwrap_or_else(|| usage());
-        match a.as_str() {
-            "--tokens" => {
-                tokens = val().split(',').map(|t| t.parse().unwrap_or_else(|_| usage())).collect();
-            }
-            "--device" => device_name = val(),
-            "--threads" => threads = val().parse().unwrap_or_else(|_| usage()),
-            "--preset" => preset = val(),
-            "--repeat" => repeat = val().parse().unwrap_or_else(|_| usage()),
-            "--chunks" => chunks = val().parse().ok().filter(|&c: &usize| c > 0).unwrap_or_else(|| usage()),
-            "--profile" => profile = true,
-            "--default-allocator" => default_allocator = true,
-            _ => usage(),
-        }
-    }
+    let Args {
+        tokens,
+        device: device_name,
+        threads,
+        preset,
+        repeat,
+        chunks,
+        profile,
+        default_allocator,
+        bench: _,
+    } = Args::parse();
     if !default_allocator {
         ggpt_model::device::tune_allocator();
     }
@@ -70,11 +84,15 @@ fn main() {
     });
     ggpt_model::profile::set_enabled(profile);
     let model = Ggpt::new(&cfg, &device);
-    println!("| tokens | chunks | pixels | device | threads | plan s | upload s | forward s | peak RSS MiB |");
+    println!(
+        "| tokens | chunks | pixels | device | threads | plan s | upload s | forward s | peak RSS MiB |"
+    );
     println!("|---|---|---|---|---|---|---|---|---|");
     for &n in &tokens {
         let k = pixels_for_tokens(n);
-        let inputs: Vec<_> = (0..chunks).map(|i| surface_chunk(k / chunks, 7 + i as u64)).collect();
+        let inputs: Vec<_> = (0..chunks)
+            .map(|i| surface_chunk(k / chunks, 7 + i as u64))
+            .collect();
         for _ in 0..repeat {
             let t0 = Instant::now();
             let plan = match plan_batch(&inputs, &plan_config(&cfg)) {
@@ -93,24 +111,31 @@ fn main() {
             let t_up = t1.elapsed().as_secs_f64();
             let t2 = Instant::now();
             let out = model.forward(&batch);
-            let conf = ggpt_model::model::read_tensor_f32(&out.tokens_conf, "tokens_conf").unwrap_or_else(|e| {
-                eprintln!("forward of {n} tokens failed: {e}");
-                std::process::exit(1)
-            });
+            let conf = ggpt_model::model::read_tensor_f32(&out.tokens_conf, "tokens_conf")
+                .unwrap_or_else(|e| {
+                    eprintln!("forward of {n} tokens failed: {e}");
+                    std::process::exit(1)
+                });
             let t_fwd = t2.elapsed().as_secs_f64();
             drop(conf);
             if profile {
                 for e in ggpt_model::profile::take_report() {
-                    eprintln!("profile {:<24} {:>8.3} s {:>5} calls", e.name, e.seconds, e.calls);
+                    eprintln!(
+                        "profile {:<24} {:>8.3} s {:>5} calls",
+                        e.name, e.seconds, e.calls
+                    );
                 }
             }
             println!(
                 "| {} | {chunks} | {k} | {device_name} | {} | {t_plan:.2} | {t_up:.2} | {t_fwd:.2} | {:.0} |",
                 batch.num_tokens,
-                if threads == 0 { "all".to_string() } else { threads.to_string() },
+                if threads == 0 {
+                    "all".to_string()
+                } else {
+                    threads.to_string()
+                },
                 peak_rss_mib()
             );
         }
     }
-    let _ = prepare_chunks;
 }

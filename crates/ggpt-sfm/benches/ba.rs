@@ -5,7 +5,7 @@
 //! the very same problems.
 //!
 //! ```text
-//! cargo run --release -p ggpt-sfm --bin bench_ba -- --export /tmp/ba_bench
+//! cargo bench -p ggpt-sfm --bench ba -- --export /tmp/ba_bench
 //! python scripts/bench_pycolmap_ba.py /tmp/ba_bench
 //! ```
 
@@ -17,12 +17,11 @@ use clap::Parser;
 use ggpt_core::io::atomic::write_atomic;
 use ggpt_sfm::ba::synthetic::{SyntheticConfig, generate};
 use ggpt_sfm::ba::{BaOptions, BaProblem, BaReport, CameraModel, LossFunction, bundle_adjust};
-use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 /// Times the bundle adjuster on synthetic problems.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(name = "ba", version, about)]
 struct Args {
     /// Numbers of views, comma separated.
     #[arg(long, value_delimiter = ',', default_value = "4,8,16")]
@@ -60,6 +59,9 @@ struct Args {
     /// Random seed.
     #[arg(long, default_value_t = 42)]
     seed: u64,
+    /// Passed by `cargo bench`; ignored.
+    #[arg(long, hide = true)]
+    bench: bool,
 }
 
 /// CPU time (user + system) of this process in seconds from `/proc/self/stat` (Linux, 10 ms
@@ -86,8 +88,16 @@ struct Row {
 }
 
 fn problem_json(p: &BaProblem, opts: &BaOptions) -> serde_json::Value {
-    let cams: Vec<Vec<f64>> = p.cam_from_world.iter().map(|m| m.transpose().iter().copied().collect()).collect();
-    let ks: Vec<Vec<f64>> = p.intrinsics.iter().map(|m| m.transpose().iter().copied().collect()).collect();
+    let cams: Vec<Vec<f64>> = p
+        .cam_from_world
+        .iter()
+        .map(|m| m.transpose().iter().copied().collect())
+        .collect();
+    let ks: Vec<Vec<f64>> = p
+        .intrinsics
+        .iter()
+        .map(|m| m.transpose().iter().copied().collect())
+        .collect();
     json!({
         "format": "ggpt-rs bundle-adjustment problem v1: cam_from_world row-major 3x4 (OpenCV, world->camera), \
                    intrinsics row-major 3x3, pixels in the pixel-centre convention (COLMAP = +0.5), \
@@ -112,20 +122,24 @@ fn problem_json(p: &BaProblem, opts: &BaOptions) -> serde_json::Value {
 }
 
 fn main() -> Result<()> {
-    tracing_subscriber::fmt().with_writer(std::io::stderr).with_env_filter(
-        tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-    ).init();
+    ggpt_cli::init_logging(true);
     let args = Args::parse();
     if args.threads > 0 {
-        rayon::ThreadPoolBuilder::new().num_threads(args.threads).build_global().context("building the rayon pool")?;
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(args.threads)
+            .build_global()
+            .context("building the rayon pool")?;
     }
     let loss = match args.loss.as_str() {
         "cauchy" => LossFunction::Cauchy { scale: 0.1 },
         "trivial" => LossFunction::Trivial,
         other => anyhow::bail!("unknown --loss {other:?} (cauchy | trivial)"),
     };
-    let mut sizes: Vec<(usize, usize, usize)> =
-        args.views.iter().map(|&v| (v, args.points, args.track_length.unwrap_or(v).min(v))).collect();
+    let mut sizes: Vec<(usize, usize, usize)> = args
+        .views
+        .iter()
+        .map(|&v| (v, args.points, args.track_length.unwrap_or(v).min(v)))
+        .collect();
     if args.large {
         sizes.push((16, 20_000, 4));
         sizes.push((16, 50_000, 6));
@@ -138,26 +152,33 @@ fn main() -> Result<()> {
         "project" => BaOptions::default(),
         other => anyhow::bail!("--solver {other}: expected official or project"),
     };
-    let pb = ProgressBar::new((sizes.len() * args.repeats) as u64);
-    pb.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} {msg}").context("progress style")?);
+    let pb = ggpt_cli::Bar::new("ba", (sizes.len() * args.repeats.max(1)) as u64);
     let mut rows = Vec::new();
     for &(views, points, track) in &sizes {
-        let cfg = SyntheticConfig { views, points, track_length: track, seed: args.seed, ..SyntheticConfig::default() };
+        let cfg = SyntheticConfig {
+            views,
+            points,
+            track_length: track,
+            seed: args.seed,
+            ..SyntheticConfig::default()
+        };
         let mut synth = generate(&cfg);
         synth.problem.loss = loss;
         synth.problem.refine_focal = !args.fixed_focal;
         let name = format!("ba_{views}v_{points}p_{track}t");
-        pb.set_message(name.clone());
+        pb.set_message(&name);
         if let Some(dir) = &args.export {
             let path = dir.join(format!("{name}.json"));
             let text = serde_json::to_vec(&problem_json(&synth.problem, &opts))?;
-            write_atomic(&path, |w| w.write_all(&text)).with_context(|| format!("writing {}", path.display()))?;
+            write_atomic(&path, |w| w.write_all(&text))
+                .with_context(|| format!("writing {}", path.display()))?;
         }
         let mut best: Option<(f64, BaReport)> = None;
         let cpu0 = process_cpu_seconds();
         for _ in 0..args.repeats.max(1) {
             let t0 = Instant::now();
-            let report = bundle_adjust(&synth.problem, &opts).with_context(|| format!("bundle adjustment of {name}"))?;
+            let report = bundle_adjust(&synth.problem, &opts)
+                .with_context(|| format!("bundle adjustment of {name}"))?;
             let dt = t0.elapsed().as_secs_f64();
             pb.inc(1);
             if best.as_ref().is_none_or(|(b, _)| dt < *b) {
@@ -168,7 +189,9 @@ fn main() -> Result<()> {
             (Some(a), Some(b)) => (b - a) / args.repeats.max(1) as f64,
             _ => f64::NAN,
         };
-        let Some((seconds, report)) = best else { continue };
+        let Some((seconds, report)) = best else {
+            continue;
+        };
         tracing::info!("{name}: {}", report.message);
         rows.push(Row {
             name,
@@ -180,7 +203,7 @@ fn main() -> Result<()> {
             cpu_seconds,
         });
     }
-    pb.finish_and_clear();
+    pb.finish();
     println!(
         "| views | points | observations | iterations | wall (s, min) | CPU (s, mean) | initial cost | final cost | status |\n|---|---|---|---|---|---|---|---|---|"
     );
@@ -209,7 +232,8 @@ fn main() -> Result<()> {
             .collect();
         let path = dir.join("rust_results.json");
         let text = serde_json::to_vec_pretty(&res)?;
-        write_atomic(&path, |w| w.write_all(&text)).with_context(|| format!("writing {}", path.display()))?;
+        write_atomic(&path, |w| w.write_all(&text))
+            .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
 }

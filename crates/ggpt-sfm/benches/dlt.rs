@@ -1,6 +1,6 @@
 //! DLT throughput benchmark (`sfm.md` §12.2 target: ≥ 1M tracks/s per core).
 //!
-//! `cargo run --release -p ggpt-sfm --bin bench_dlt [-- --views 4,8,16 --width 518 --height 392 --reps 3]`
+//! `cargo bench -p ggpt-sfm --bench dlt [-- --views 4,8,16 --width 518 --height 392 --reps 3]`
 //! builds a synthetic scene (cameras on an arc looking at points 4–6 units away, every pixel a
 //! track visible in its source view and in each other view with probability 1/2, 0.3 px noise),
 //! runs [`ggpt_sfm::dlt::triangulate_tracks`] and prints a table of tracks per second, plus the
@@ -17,7 +17,7 @@ use ggpt_sfm::scatter::{ScatterOptions, scatter};
 use nalgebra::{Matrix3, Matrix3x4, Point3, Rotation3, Vector3};
 
 #[derive(Parser, Debug)]
-#[command(about = "DLT triangulation throughput benchmark")]
+#[command(name = "dlt", about = "DLT triangulation throughput benchmark")]
 struct Args {
     /// View counts to benchmark.
     #[arg(long, value_delimiter = ',', default_value = "4,8,16")]
@@ -34,6 +34,9 @@ struct Args {
     /// Seed of the synthetic scene.
     #[arg(long, default_value_t = 42)]
     seed: u64,
+    /// Passed by `cargo bench`; ignored.
+    #[arg(long, hide = true)]
+    bench: bool,
 }
 
 /// SplitMix64: a tiny deterministic generator for the synthetic data.
@@ -54,7 +57,17 @@ impl Rng {
 fn scene(n: usize, h: usize, w: usize, seed: u64) -> (Correspondences, Vec<bool>, Cameras) {
     let mut rng = Rng(seed);
     let f = 0.8 * w as f64;
-    let k = Matrix3::new(f, 0.0, (w as f64 - 1.0) / 2.0, 0.0, f, (h as f64 - 1.0) / 2.0, 0.0, 0.0, 1.0);
+    let k = Matrix3::new(
+        f,
+        0.0,
+        (w as f64 - 1.0) / 2.0,
+        0.0,
+        f,
+        (h as f64 - 1.0) / 2.0,
+        0.0,
+        0.0,
+        1.0,
+    );
     let mut ext = Vec::new();
     for v in 0..n {
         let a = 0.05 * v as f64;
@@ -65,7 +78,10 @@ fn scene(n: usize, h: usize, w: usize, seed: u64) -> (Correspondences, Vec<bool>
         e.set_column(3, &(-r * c));
         ext.push(e);
     }
-    let cams = Cameras { cam_from_world: ext, intrinsics: vec![k; n] };
+    let cams = Cameras {
+        cam_from_world: ext,
+        intrinsics: vec![k; n],
+    };
     let hw = h * w;
     let nt = n * hw;
     let dims = Dims { n, h, w };
@@ -90,7 +106,16 @@ fn scene(n: usize, h: usize, w: usize, seed: u64) -> (Correspondences, Vec<bool>
         }
     }
     let e = n * nt;
-    (Correspondences { dims, matches, scores: vec![1.0; e], cycle: vec![0.0; e] }, vis, cams)
+    (
+        Correspondences {
+            dims,
+            matches,
+            scores: vec![1.0; e],
+            cycle: vec![0.0; e],
+        },
+        vis,
+        cams,
+    )
 }
 
 /// Process CPU time (user + system, seconds) from `/proc/self/stat` (Linux; `None` elsewhere).
@@ -106,8 +131,17 @@ fn cpu_seconds() -> Option<f64> {
 
 fn main() -> Result<()> {
     let args = Args::parse();
-    let opts = DltOptions { max_reproj_error: 4.0, min_tri_angle_deg: 3.0, cheirality: false };
-    println!("DLT throughput, {}x{} ff pixels, {} rayon threads", args.width, args.height, rayon::current_num_threads());
+    let opts = DltOptions {
+        max_reproj_error: 4.0,
+        min_tri_angle_deg: 3.0,
+        cheirality: false,
+    };
+    println!(
+        "DLT throughput, {}x{} ff pixels, {} rayon threads",
+        args.width,
+        args.height,
+        rayon::current_num_threads()
+    );
     println!(
         "| views | tracks (>= 2 views) | mean views/track | best wall time (s) | tracks/s (wall) | CPU time (s) | tracks per CPU-second | kept | scatter wall (s) | scatter CPU (s) |"
     );
@@ -140,7 +174,8 @@ fn main() -> Result<()> {
             std::hint::black_box(sc.observations);
         }
         let tracks = out.tracks.len();
-        let views: f64 = out.tracks.iter().map(|t| t.num_views as f64).sum::<f64>() / tracks.max(1) as f64;
+        let views: f64 =
+            out.tracks.iter().map(|t| t.num_views as f64).sum::<f64>() / tracks.max(1) as f64;
         println!(
             "| {n} | {tracks} | {views:.2} | {best:.3} | {:.0} | {best_cpu:.2} | {:.0} | {} | {sc_best:.3} | {sc_cpu:.2} |",
             tracks as f64 / best,
