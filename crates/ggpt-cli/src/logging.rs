@@ -1,6 +1,8 @@
 //! Logging of every binary: `tracing` events to stderr, filtered by `RUST_LOG` (default
 //! `info`), written through `tracing-indicatif` so that they are printed above the progress
-//! bars instead of through them.
+//! bars instead of through them. Colours only when stderr is a terminal.
+
+use std::io::IsTerminal;
 
 use tracing_indicatif::IndicatifLayer;
 use tracing_indicatif::filter::{IndicatifFilter, hide_indicatif_span_fields};
@@ -19,6 +21,7 @@ pub fn init_logging(progress: bool) {
         let indicatif = IndicatifLayer::new()
             .with_span_field_formatter(hide_indicatif_span_fields(DefaultFields::new()));
         let fmt = tracing_subscriber::fmt::layer()
+            .with_ansi(std::io::stderr().is_terminal())
             .with_writer(indicatif.get_stderr_writer())
             .with_filter(filter);
         let _ = tracing_subscriber::registry()
@@ -27,6 +30,7 @@ pub fn init_logging(progress: bool) {
             .try_init();
     } else {
         let fmt = tracing_subscriber::fmt::layer()
+            .with_ansi(std::io::stderr().is_terminal())
             .with_writer(std::io::stderr)
             .with_filter(filter);
         let _ = tracing_subscriber::registry().with(fmt).try_init();

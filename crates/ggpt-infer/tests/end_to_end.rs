@@ -376,6 +376,7 @@ fn tiny_scene_end_to_end_ndarray() {
 
 /// The same run on wgpu: same invariants, and the refined points agree with ndarray's (same
 /// scene and SfM result, same weights file, same seeds) to 1e-4.
+#[cfg(feature = "wgpu")]
 #[test]
 fn tiny_scene_end_to_end_wgpu_matches_ndarray() {
     let dir = tempfile::tempdir().unwrap();

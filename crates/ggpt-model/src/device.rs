@@ -22,6 +22,10 @@ pub fn device_from_name(name: &str) -> Result<Device> {
         (Some("wgpu"), Some(i)) => Ok(Device::wgpu(DeviceKind::DiscreteGpu(i))),
         #[cfg(feature = "cuda")]
         (Some("cuda"), i) => Ok(Device::cuda(i.unwrap_or(0))),
+        (None, _) if matches!(base, "wgpu" | "cuda") => Err(ModelError::NotCompiled {
+            device: name.to_string(),
+            feature: if base == "wgpu" { "wgpu" } else { "cuda" },
+        }),
         _ => Err(ModelError::Device(name.to_string())),
     }
 }
@@ -140,5 +144,10 @@ mod index_tests {
             "CPU backends take no index"
         );
         assert!(device_from_name("tpu").is_err());
+        #[cfg(not(feature = "wgpu"))]
+        {
+            let e = device_from_name("wgpu:0").unwrap_err().to_string();
+            assert!(e.contains("--features wgpu"), "{e}");
+        }
     }
 }

@@ -86,8 +86,20 @@ pub enum ModelError {
         message: String,
     },
     /// An unknown device name.
-    #[error("unknown or unavailable device '{0}' (expected cpu, ndarray, flex or wgpu)")]
+    #[error(
+        "unknown or unavailable device '{0}' (expected cpu, ndarray, flex, wgpu[:N] or cuda[:N])"
+    )]
     Device(String),
+    /// A known backend that this binary was built without.
+    #[error(
+        "device '{device}': this binary was built without the `{feature}` backend (rebuild with `--features {feature}`, docs/performance.md)"
+    )]
+    NotCompiled {
+        /// The device asked for.
+        device: String,
+        /// The cargo feature that adds the backend.
+        feature: &'static str,
+    },
     /// The CPU thread pool could not be sized (it was already initialised).
     #[error("CPU thread pool: {0}")]
     Threads(String),

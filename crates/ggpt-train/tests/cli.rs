@@ -556,3 +556,63 @@ fn kill_9_then_bare_resume_reproduces_the_uninterrupted_run() {
     );
     assert_eq!(train_losses(&killed), a);
 }
+
+/// SIGTERM (as Ctrl-C) stops a training run cleanly through the `ctrlc` handler: the process
+/// finishes its step, writes a checkpoint of that step, says so and exits with success; the
+/// checkpoint loads.
+#[test]
+fn sigterm_stops_training_with_a_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let set_dir = prepare_small_set(dir.path(), 2);
+    let out_dir = dir.path().join("run");
+    let child = bin()
+        .args(["train", "--data"])
+        .arg(&set_dir)
+        .arg("--out")
+        .arg(&out_dir)
+        .args([
+            "--preset",
+            "tiny",
+            "--batch-size",
+            "2",
+            "--save-every",
+            "1000",
+        ])
+        .args(["--val-every", "0", "--steps", "100000", "--device", "cpu"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // wait for a few training steps in metrics.jsonl
+    let metrics = out_dir.join("metrics.jsonl");
+    let t0 = std::time::Instant::now();
+    while std::fs::read_to_string(&metrics).map_or(0, |t| t.lines().count()) < 3 {
+        assert!(
+            t0.elapsed().as_secs() < 600,
+            "no training step after 10 minutes"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let pid = libc::pid_t::try_from(child.id()).unwrap();
+    // SAFETY: plain kill(2) of our own child process.
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGTERM) }, 0);
+    let out = child.wait_with_output().unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "exit {:?}: {}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("interrupted at step"), "{stdout}");
+    let (step, ckpt) = list_checkpoints(&out_dir).unwrap().last().cloned().unwrap();
+    assert!((3..100_000).contains(&step), "checkpoint at step {step}");
+    assert!(stdout.contains(&ckpt.display().to_string()), "{stdout}");
+    load_checkpoint(
+        &ckpt,
+        &ggpt_model::device::device_from_name("cpu")
+            .unwrap()
+            .autodiff(),
+    )
+    .unwrap();
+}
