@@ -7,13 +7,15 @@
 //! ```
 //! Peak RSS is per process: run one size per invocation for a clean memory figure.
 //! `--chunks N` splits the tokens of a row over `N` chunks (different seeds) in one forward, as
-//! the scene pipeline batches chunks.
+//! the scene pipeline batches chunks. `--count` adds the kernel launches (wgpu, CUDA) and host
+//! readbacks of every forward; `--kernel-times` also times each kernel (serialised).
 
 use std::time::Instant;
 
 use clap::Parser;
 use ggpt_model::bench::{peak_rss_mib, pixels_for_tokens, surface_chunk};
 use ggpt_model::device::device_from_name;
+use ggpt_model::device_stats::{DeviceCounts, KernelTiming, observe};
 use ggpt_model::infer::plan_config;
 use ggpt_model::plan::plan_batch;
 use ggpt_model::{Ggpt, GgptConfig, PreparedBatch};
@@ -44,6 +46,14 @@ struct Args {
     /// Print the wall time per stage (`ggpt_model::profile`) to stderr after each run.
     #[arg(long)]
     profile: bool,
+    /// Count the kernel launches (CubeCL backends) and host readbacks of each forward and
+    /// print them after its row, with the launches per kernel to stderr.
+    #[arg(long)]
+    count: bool,
+    /// Like `--count`, and time every kernel (runs them one at a time: the forward time of
+    /// that row is not the pipelined time).
+    #[arg(long)]
+    kernel_times: bool,
     /// Keep the system allocator settings (no `device::tune_allocator`).
     #[arg(long)]
     default_allocator: bool,
@@ -61,6 +71,8 @@ fn main() {
         repeat,
         chunks,
         profile,
+        count,
+        kernel_times,
         default_allocator,
         bench: _,
     } = Args::parse();
@@ -110,12 +122,19 @@ fn main() {
             });
             let t_up = t1.elapsed().as_secs_f64();
             let t2 = Instant::now();
-            let out = model.forward(&batch);
-            let conf = ggpt_model::model::read_tensor_f32(&out.tokens_conf, "tokens_conf")
-                .unwrap_or_else(|e| {
-                    eprintln!("forward of {n} tokens failed: {e}");
-                    std::process::exit(1)
-                });
+            let timing = if kernel_times {
+                KernelTiming::Resolved
+            } else {
+                KernelTiming::CountOnly
+            };
+            let (conf, counts) = observe(timing, || {
+                let out = model.forward(&batch);
+                ggpt_model::model::read_tensor_f32(&out.tokens_conf, "tokens_conf")
+            });
+            let conf = conf.unwrap_or_else(|e| {
+                eprintln!("forward of {n} tokens failed: {e}");
+                std::process::exit(1)
+            });
             let t_fwd = t2.elapsed().as_secs_f64();
             drop(conf);
             if profile {
@@ -136,6 +155,37 @@ fn main() {
                 },
                 peak_rss_mib()
             );
+            if count || kernel_times {
+                print_counts(&counts, kernel_times);
+            }
+        }
+    }
+}
+
+/// One line of counts to stdout, the launches (and times) per kernel to stderr.
+fn print_counts(c: &DeviceCounts, timed: bool) {
+    let launches = if c.launches_observed {
+        c.launches.to_string()
+    } else {
+        "not observed (no CubeCL backend compiled)".to_string()
+    };
+    println!(
+        "counts: {launches} kernel launches, {} host readbacks, {} distinct kernels",
+        c.readbacks,
+        c.kernels.len()
+    );
+    let mut kernels = c.kernels.clone();
+    if timed {
+        kernels.sort_by(|a, b| b.seconds.total_cmp(&a.seconds));
+    }
+    for k in kernels.iter().take(40) {
+        if timed {
+            eprintln!(
+                "kernel {:>6} x {:>9.3} s  {}",
+                k.launches, k.seconds, k.name
+            );
+        } else {
+            eprintln!("kernel {:>6} x  {}", k.launches, k.name);
         }
     }
 }

@@ -327,6 +327,79 @@ impl Block {
         Some(grads)
     }
 
+    /// [`Self::attn_part_backward`] on devices without the host kernels (GPU training): the
+    /// gradient of `x2 = x1 + DropPath(proj(core(LN1(x1))))` from tensor ops, with the core
+    /// differentiated one window sub-group at a time
+    /// ([`WindowAttention::core_backward_grouped`], at most `score_budget` floats of scores
+    /// in the graph). `x1`, `g_x2 [N, C]` without autodiff. `core` is the attention before its
+    /// projection kept by the graph-free forward ([`Self::attn_part_with_core`]); without it
+    /// the core's forward runs once more without a graph (the fused attention on GPU
+    /// devices). The caller restores the mask RNG first, as for the host path. `None` when a
+    /// gradient is missing.
+    pub fn attn_part_backward_grouped(
+        &self,
+        x1: Tensor<2>,
+        g_x2: Tensor<2>,
+        level: &PreparedLevel,
+        core: Option<Tensor<2>>,
+        score_budget: usize,
+    ) -> Option<PartGrads> {
+        let index = &level.attn[self.order_row];
+        // LN1 under autodiff (a cheap graph, kept until the end)
+        let x_leaf = x1.autodiff().require_grad();
+        let u = layer_norm_forward(&self.norm1, self.ln_eps, x_leaf.clone());
+        let u_value = u.clone().without_autodiff();
+        // the core without a graph
+        let [n, c] = u_value.dims();
+        let core = match core {
+            Some(core) if core.dims() == [n, c] => core,
+            _ => self
+                .attn
+                .clone()
+                .no_grad()
+                .core_profiled(u_value.clone().autodiff(), index, "step")
+                .without_autodiff(),
+        };
+        // proj and drop path under autodiff
+        let core_leaf = core.autodiff().require_grad();
+        let y = self
+            .drop_path
+            .forward(self.attn.proj.forward(core_leaf.clone()));
+        let mut grads = (y * g_x2.clone().autodiff()).sum().backward();
+        let d_core = core_leaf.grad_remove(&mut grads)?;
+        let mut out = PartGrads::default();
+        out.matrices.push((
+            self.attn.proj.weight.id,
+            self.attn.proj.weight.val().grad_remove(&mut grads)?,
+        ));
+        if let Some(b) = &self.attn.proj.bias {
+            out.vectors.push((b.id, b.val().grad_remove(&mut grads)?));
+        }
+        drop(grads);
+        // the core, sub-group by sub-group
+        let core_grads = self
+            .attn
+            .core_backward_grouped(u_value, d_core, index, score_budget)?;
+        out.matrices
+            .push((self.attn.qkv.weight.id, core_grads.qkv_weight));
+        if let (Some(b), Some(g)) = (&self.attn.qkv.bias, core_grads.qkv_bias) {
+            out.vectors.push((b.id, g));
+        }
+        // LN1
+        let mut grads = (u * core_grads.input.autodiff()).sum().backward();
+        let d_x = x_leaf.grad_remove(&mut grads)?;
+        out.vectors.push((
+            self.norm1.gamma.id,
+            self.norm1.gamma.val().grad_remove(&mut grads)?,
+        ));
+        if let Some(beta) = &self.norm1.beta {
+            out.vectors
+                .push((beta.id, beta.val().grad_remove(&mut grads)?));
+        }
+        out.inputs = vec![g_x2 + d_x];
+        Some(out)
+    }
+
     /// The drop-path scale of this block's next mask, per row `[N]` (`0` or `1 / (1 - p)`),
     /// drawn as [`DropPath::forward`] draws it (one draw per row); `Some(None)` when the drop
     /// path is inactive (scale 1), `None` when the readback fails.

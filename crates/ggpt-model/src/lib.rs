@@ -13,6 +13,7 @@ pub mod block;
 pub mod chunk_io;
 pub mod config;
 pub mod device;
+pub mod device_stats;
 pub mod drop_path;
 pub mod error;
 pub mod gelu;

@@ -275,6 +275,7 @@ pub fn read_tensor_f32<const D: usize>(
 
 /// [`read_tensor_f32`] of an owned tensor (no copy of the tensor data on the host).
 pub fn tensor_into_f32<const D: usize>(t: burn::tensor::Tensor<D>, name: &str) -> Result<Vec<f32>> {
+    crate::device_stats::note_readback();
     let data = t.try_into_data().map_err(|e| ModelError::Readback {
         name: name.to_string(),
         message: format!("device execution failed ({e}); if the device ran out of memory or hit a buffer-size limit, run smaller forwards (--max-tokens-per-forward / smaller chunks)"),

@@ -28,6 +28,7 @@ pub fn is_cpu_device(device: &Device) -> bool {
 /// entry is negative (the host kernels' tables: [`crate::attention::HostAttnIndex`],
 /// [`crate::host_conv_grad::HostConvTables`]).
 pub(crate) fn read_indices(t: &Tensor<1, Int>) -> Option<Vec<usize>> {
+    crate::device_stats::note_readback();
     let v = t
         .clone()
         .try_into_data()

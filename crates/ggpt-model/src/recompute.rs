@@ -32,6 +32,7 @@ use burn::module::{Module, ModuleVisitor, Param, ParamId};
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Distribution, Gradients, Tensor};
 
+use crate::attention::SCORE_BUDGET_FLOATS;
 use crate::drop_path::{self, MaskRngState};
 use crate::model::{Ggpt, GgptOutput, read_tensor_f32};
 use crate::norm;
@@ -99,7 +100,15 @@ fn run<T, E>(
             || format!("step.forward.{}", op_kind(seg.op)),
             || frozen.run_segment_keeping_core(batch, seg.op, &args, &mut rec),
         );
-        if host_kernels {
+        // (other devices keep only the attention core, which their grouped backward takes)
+        let is_attn = matches!(
+            seg.op,
+            Op::Block {
+                part: BlockPart::Attn,
+                ..
+            }
+        );
+        if host_kernels || is_attn {
             kept[k] = core.map(Tensor::without_autodiff);
         }
         for (&o, t) in seg.outputs.iter().zip(outs) {
@@ -151,18 +160,32 @@ fn run<T, E>(
             .filter_map(|i| leaves.iter().find(|(j, _)| j == i).map(|(_, t)| t.clone()))
             .collect();
         drop_path::restore_mask_rng(&rng_before[k]);
-        if let (Op::Block { stage, block, part }, true, [Some(g)]) =
-            (seg.op, host_kernels, out_grads.as_slice())
-        {
-            // the block parts differentiated on the host (no graph, no score tensor, no per-tap
-            // weight slices, multi-threaded element-wise passes)
+        if let (Op::Block { stage, block, part }, [Some(g)]) = (seg.op, out_grads.as_slice()) {
+            // CPU devices: the block parts differentiated on the host (no graph, no score
+            // tensor, no per-tap weight slices, multi-threaded element-wise passes). Other
+            // devices: the attention part with its core one window sub-group at a time.
             let (blocks, level) = model.stage_blocks(batch, stage);
             let b = &blocks[block];
             let input = |j: usize| slot(&values, seg.inputs[j], &device);
-            let d = match part {
-                BlockPart::Cpe => b.cpe_part_backward(input(1), kept[k].take(), g.clone(), level),
-                BlockPart::Attn => b.attn_part_backward(input(0), g.clone(), level, kept[k].take()),
-                BlockPart::Mlp => b.mlp_part_backward(input(0), g.clone()),
+            let d = match (part, host_kernels) {
+                (BlockPart::Cpe, true) => {
+                    b.cpe_part_backward(input(1), kept[k].take(), g.clone(), level)
+                }
+                (BlockPart::Attn, true) => {
+                    b.attn_part_backward(input(0), g.clone(), level, kept[k].take())
+                }
+                (BlockPart::Mlp, true) => b.mlp_part_backward(input(0), g.clone()),
+                (BlockPart::Attn, false) => {
+                    let core = kept[k].take();
+                    b.attn_part_backward_grouped(
+                        input(0),
+                        g.clone(),
+                        level,
+                        core,
+                        SCORE_BUDGET_FLOATS,
+                    )
+                }
+                (_, false) => None,
             };
             if let Some(d) = d {
                 for (&i, g) in seg.inputs.iter().zip(d.inputs) {
@@ -573,6 +596,101 @@ mod tests {
                     }
                     assert!(compared >= 4, "{label}: {compared} parameter gradients");
                 }
+            }
+        }
+        drop_path::seed_drop_path(None);
+    }
+
+    /// The grouped attention backward of GPU devices (tensor ops, one window sub-group at a
+    /// time) equals autodiff of the whole part, with and without the kept core, one window per
+    /// sub-group and all windows in one, with and without drop path.
+    #[test]
+    fn grouped_attention_backward_equals_autodiff_of_the_part() {
+        let _rng = rng_lock();
+        let device = crate::device::device_from_name("ndarray")
+            .unwrap()
+            .autodiff();
+        let host = device.clone().without_autodiff();
+        let mut cfg = GgptConfig::tiny();
+        cfg.drop_path = 0.3;
+        host.seed(5);
+        let model = Ggpt::new(&cfg, &host).fork(&device).train();
+        let batch = prepare_chunks(&cfg, &[surface_chunk(400, 6)], &device).unwrap();
+        let stage = Stage::Enc(0);
+        let (blocks, level) = model.stage_blocks(&batch, stage);
+        let windows: usize = level.attn[blocks[0].order_row]
+            .groups
+            .iter()
+            .map(|g| g.num_windows)
+            .sum();
+        assert!(windows >= 2, "{windows} windows: the test needs several");
+        let active = blocks
+            .iter()
+            .position(|b| b.drop_path.prob > 0.0)
+            .expect("a block with drop path");
+        let frozen = model.clone().no_grad();
+        let (frozen_blocks, _) = frozen.stage_blocks(&batch, stage);
+        let c = blocks[0].norm1.gamma.val().dims()[0];
+        let random = |seed: u64| {
+            host.seed(seed);
+            Tensor::<2>::random(
+                [level.num_tokens, c],
+                Distribution::Uniform(-1.0, 1.0),
+                &host,
+            )
+        };
+        let (x, g) = (random(11), random(12));
+        for block in [0, active] {
+            let b = &blocks[block];
+            drop_path::seed_drop_path(Some(9));
+            let xa = x.clone().autodiff().require_grad();
+            let mut rec = Recorder::disabled();
+            let y = b.attn_part(xa.clone(), level, &mut rec, "enc0.block");
+            let mut grads = (y * g.clone().autodiff()).sum().backward();
+            let want_x = read_tensor_f32(&xa.grad_remove(&mut grads).unwrap(), "x").unwrap();
+            let mut want = GradientsParams::new();
+            collect_param_grads(&model, &mut grads, &mut want);
+            let want = flat(&model, &want);
+            let kept = frozen_blocks[block]
+                .attn_part_with_core(x.clone().autodiff(), level, &mut rec, "enc0.block")
+                .1
+                .without_autodiff();
+            for (budget, core) in [(1, Some(kept)), (SCORE_BUDGET_FLOATS, None)] {
+                let label = format!("block {block}, budget {budget}");
+                drop_path::seed_drop_path(Some(9));
+                let d = b
+                    .attn_part_backward_grouped(x.clone(), g.clone(), level, core, budget)
+                    .expect("grouped backward");
+                let got_x = read_tensor_f32(&d.inputs[0], "d x").unwrap();
+                let max = want_x.iter().fold(1e-12f32, |m, v| m.max(v.abs()));
+                let worst = want_x
+                    .iter()
+                    .zip(&got_x)
+                    .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+                assert!(worst <= 2e-5 * max, "{label} input: {worst:e} of {max:e}");
+                let mut acc = GradientsParams::new();
+                d.vectors
+                    .into_iter()
+                    .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                d.matrices
+                    .into_iter()
+                    .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                let got = flat(&model, &acc);
+                let mut compared = 0;
+                for ((name, w), (_, got)) in want.iter().zip(&got) {
+                    if w.is_empty() {
+                        continue;
+                    }
+                    assert_eq!(w.len(), got.len(), "{label} {name}: missing gradient");
+                    let max = w.iter().fold(1e-12f32, |m, v| m.max(v.abs()));
+                    let worst = w
+                        .iter()
+                        .zip(got)
+                        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+                    assert!(worst <= 2e-5 * max, "{label} {name}: {worst:e} of {max:e}");
+                    compared += 1;
+                }
+                assert_eq!(compared, 6, "{label}: LN1 (2), qkv (2), proj (2)");
             }
         }
         drop_path::seed_drop_path(None);

@@ -113,7 +113,11 @@ impl ModuleVisitor for GradCollector<'_> {
 
 /// Training-mode loss: squared distance of the outputs to a shifted target plus a confidence term.
 fn loss_of(model: &Ggpt, batch: &PreparedBatch) -> Tensor<1> {
-    let out = model.forward(batch);
+    loss_of_output(model.forward(batch), batch)
+}
+
+/// [`loss_of`] of outputs already computed.
+fn loss_of_output(out: ggpt_model::GgptOutput, batch: &PreparedBatch) -> Tensor<1> {
     let target = batch.coord.clone().add_scalar(0.05);
     let d = out.tokens_xyz - target;
     (d.clone() * d)
@@ -131,6 +135,51 @@ fn gradients(
     let loss = loss_of(model, &batch);
     let grads = loss.backward();
     let mut c = GradCollector {
+        grads: &grads,
+        path: Vec::new(),
+        out: Vec::new(),
+    };
+    model.visit(&mut c);
+    c.out
+}
+
+/// `(path, gradient)` of every trainable parameter from the segment recomputation
+/// (`ggpt_model::recompute`: on a GPU device the attention parts take the grouped backward).
+fn recomputed_gradient_values(
+    model: &Ggpt,
+    chunks: &[ChunkInput],
+    cfg: &GgptConfig,
+    device: &Device,
+) -> Vec<(String, Option<Vec<f32>>)> {
+    struct Collect<'a> {
+        grads: &'a GradientsParams,
+        path: Vec<String>,
+        out: Vec<(String, Option<Vec<f32>>)>,
+    }
+    impl ModuleVisitor for Collect<'_> {
+        fn enter_module(&mut self, name: &str, _container_type: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _name: &str, _container_type: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            if matches!(
+                self.path.last().map(String::as_str),
+                Some("running_mean" | "running_var")
+            ) {
+                return;
+            }
+            let g = self.grads.get::<D>(param.id).map(|g| values(&g));
+            self.out.push((self.path.join("."), g));
+        }
+    }
+    let batch = prepare_chunks(cfg, chunks, device).expect("plan");
+    let (grads, ()) = ggpt_model::recompute::recomputed_gradients(model, &batch, |out| {
+        Ok::<_, String>((loss_of_output(out, &batch), ()))
+    })
+    .unwrap();
+    let mut c = Collect {
         grads: &grads,
         path: Vec::new(),
         out: Vec::new(),
@@ -272,6 +321,33 @@ fn wgpu_agrees_with_ndarray() {
     let chunks = [synthetic_chunk(200, 3)];
     let mut failures = compare_forward(&tiny_cfg(), &chunks, &devices, &names, false);
     failures.extend(compare_gradients(&tiny_cfg(), &chunks, &devices, &names));
+    // the training path of GPU devices: segment recomputation with the grouped attention
+    // backward on wgpu, against plain autodiff on ndarray (both in training mode)
+    let cfg = tiny_cfg();
+    let ad: Vec<Device> = devices.iter().map(|d| d.clone().autodiff()).collect();
+    let models: Vec<Ggpt> = models_on(&cfg, &ad, false)
+        .into_iter()
+        .map(Ggpt::train)
+        .collect();
+    let want = gradients(&models[0], &chunks, &cfg, &ad[0]);
+    let got = recomputed_gradient_values(&models[1], &chunks, &cfg, &ad[1]);
+    let mut worst = 0.0f32;
+    for ((path, a), (_, b)) in want.iter().zip(&got) {
+        match (a, b) {
+            (Some(a), Some(b)) => {
+                let (d, at) = max_abs_diff(a, b);
+                worst = worst.max(d);
+                if d > 1e-3 {
+                    failures.push(format!(
+                        "recomputed grad {path} wgpu: max |Δ| = {d:e} at {at}"
+                    ));
+                }
+            }
+            (Some(_), None) => failures.push(format!("recomputed grad {path}: missing on wgpu")),
+            _ => {}
+        }
+    }
+    eprintln!("recomputed gradients wgpu vs plain autodiff ndarray: max |Δ| = {worst:.2e}");
     let fixture = fixture_chunks();
     failures.extend(compare_forward(
         &GgptConfig::small(),

@@ -1,5 +1,7 @@
 //! Parity with the official PyTorch fixtures (`shared/fixtures/ggpt_small`) on ndarray:
 //! every recorded intermediate and every output to 1e-4, each chunk alone and both batched.
+//! `GGPT_TEST_DEVICE=wgpu` (or `flex`, `cuda`) runs the same checks on that device
+//! (scripts/gpu_bench.sh does, on a GPU).
 #![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
@@ -15,9 +17,14 @@ const TOL: f32 = 1e-4;
 /// Tolerance of `input.feat` / `input.coord` (ULP differences of sin/cos/pow).
 const TOL_INPUT: f32 = 1e-5;
 
+/// ndarray, or the device named by `GGPT_TEST_DEVICE` (`ggpt_model::device::device_from_name`).
 #[allow(deprecated)]
 fn device() -> Device {
-    Device::ndarray()
+    match std::env::var("GGPT_TEST_DEVICE") {
+        Ok(name) => ggpt_model::device::device_from_name(&name)
+            .unwrap_or_else(|e| panic!("GGPT_TEST_DEVICE={name}: {e}")),
+        Err(_) => Device::ndarray(),
+    }
 }
 
 /// Output names of the fixture `outputs.safetensors`, with the values from a `ChunkOutput`.

@@ -10,12 +10,16 @@ use ggpt_model::plan::ChunkInput;
 use ggpt_model::{Ggpt, GgptConfig};
 use safetensors::SafeTensors;
 
-/// `<workspace>/../shared/fixtures/ggpt_small`.
+/// `$GGPT_FIXTURES/ggpt_small`, by default `<workspace>/../shared/fixtures/ggpt_small`
+/// (`GGPT_FIXTURES` lets a prebuilt test binary run on another machine: scripts/gpu_bench.sh).
 pub fn small_dir() -> PathBuf {
-    PathBuf::from(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../../../shared/fixtures/ggpt_small"
-    ))
+    match std::env::var_os("GGPT_FIXTURES") {
+        Some(root) => PathBuf::from(root).join("ggpt_small"),
+        None => PathBuf::from(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../../shared/fixtures/ggpt_small"
+        )),
+    }
 }
 
 /// Reads a fixture file (panics with the path when missing: tests must fail, not skip).
