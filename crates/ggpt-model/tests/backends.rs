@@ -145,6 +145,7 @@ fn gradients(
 
 /// `(path, gradient)` of every trainable parameter from the segment recomputation
 /// (`ggpt_model::recompute`: on a GPU device the attention parts take the grouped backward).
+#[cfg(feature = "wgpu")]
 fn recomputed_gradient_values(
     model: &Ggpt,
     chunks: &[ChunkInput],
