@@ -3,8 +3,10 @@
 #
 #   scripts/gpu_bench.sh                    build (release, --features wgpu) and run everything
 #   scripts/gpu_bench.sh --quick            small sizes: checks the script itself (lavapipe, CI box)
-#   scripts/gpu_bench.sh --prepare DIR      build only; copy the five binaries into DIR
-#   scripts/gpu_bench.sh --bin DIR          run the binaries of DIR (a GPU machine without Rust)
+#   scripts/gpu_bench.sh --prepare DIR      build only; write the binaries, stripped and
+#                                           xz-compressed (~11 MB each), into DIR
+#   scripts/gpu_bench.sh --bin DIR          run the binaries of DIR, plain or .xz (a GPU machine
+#                                           without Rust)
 #
 # Options: --features LIST (cargo features, default "wgpu"; e.g. "wgpu,fusion,autotune"),
 #          --profile NAME (cargo profile, default release), --log FILE (default
@@ -17,7 +19,8 @@
 #   1. forward      bench forward, released config, 26k / 100k / 400k tokens (quick: 2k, 4k),
 #                   two runs each (the second is warm), kernel launches and readbacks counted
 #   2. parity       the fixture parity tests with GGPT_TEST_DEVICE=wgpu (tolerance 1e-4), and
-#                   the wgpu-vs-ndarray backend test
+#                   the wgpu-vs-ndarray backend test (forward, gradients, recomputed gradients;
+#                   optional with --bin: skipped when DIR has no `backends`)
 #   3. infer        bench infer --views 4,8,16, released config (quick: --views 2, tiny, 126x98)
 #   4. train        bench train, released config, 10k and 100k tokens, batch 1 (quick: small, 2k)
 # The Vulkan loader: when `ldconfig -p` has no libvulkan and `.gl/*.deb` exist in the repository
@@ -59,7 +62,8 @@ T_START=$(date +%s)
 
 # --- Vulkan loader and driver -------------------------------------------------------------
 setup_vulkan() {
-  if ! ldconfig -p 2>/dev/null | grep -q 'libvulkan\.so\.1'; then
+  # (no `grep -q`: with pipefail, ldconfig's SIGPIPE would read as "not found")
+  if ! ldconfig -p 2>/dev/null | grep 'libvulkan\.so\.1' >/dev/null; then
     if compgen -G "$ROOT/.gl/*.deb" >/dev/null; then
       log "# no libvulkan: unpacking $ROOT/.gl/*.deb"
       for f in "$ROOT"/.gl/*.deb; do dpkg -x "$f" / || log "# dpkg -x $f failed"; done
@@ -134,9 +138,17 @@ find_fixtures() {
 }
 
 if [ -n "$BIN" ]; then
+  UNPACK="$(mktemp -d)"
   for name in forward infer train parity backends; do
-    [ -x "$BIN/$name" ] || { echo "gpu_bench.sh: $BIN/$name is missing or not executable (make it with --prepare)" >&2; exit 2; }
-    EXE[$name]="$BIN/$name"
+    if [ -x "$BIN/$name" ]; then
+      EXE[$name]="$BIN/$name"
+    elif [ -f "$BIN/$name.xz" ]; then
+      xz -d -c "$BIN/$name.xz" >"$UNPACK/$name" && chmod +x "$UNPACK/$name" \
+        || { echo "gpu_bench.sh: cannot unpack $BIN/$name.xz" >&2; exit 2; }
+      EXE[$name]="$UNPACK/$name"
+    elif [ "$name" != backends ]; then
+      echo "gpu_bench.sh: $BIN/$name(.xz) is missing (make it with --prepare)" >&2; exit 2
+    fi
   done
 else
   : >>"$LOG"
@@ -144,8 +156,11 @@ else
   if [ -n "$PREPARE" ]; then
     mkdir -p "$PREPARE"
     for name in forward infer train parity backends; do
-      cp "${EXE[$name]}" "$PREPARE/$name.tmp" && mv "$PREPARE/$name.tmp" "$PREPARE/$name"
-      strip "$PREPARE/$name" 2>/dev/null || true
+      cp "${EXE[$name]}" "$PREPARE/$name.tmp" || exit 1
+      strip "$PREPARE/$name.tmp" 2>/dev/null || true
+      xz -T0 -6 -c "$PREPARE/$name.tmp" >"$PREPARE/$name.xz.tmp" && mv "$PREPARE/$name.xz.tmp" "$PREPARE/$name.xz" \
+        || { log "# xz of $name failed"; exit 1; }
+      rm -f "$PREPARE/$name.tmp"
     done
     log "# prepared: $(du -sh "$PREPARE" | cut -f1) in $PREPARE (run there: scripts/gpu_bench.sh --bin $PREPARE)"
     exit 0
@@ -154,7 +169,8 @@ fi
 
 setup_vulkan
 find_fixtures
-log "# gpu_bench.sh $(date -u +%FT%TZ) quick=$QUICK device=$DEVICE features=$FEATURES"
+[ -n "$BIN" ] && FEATURES="as built into $BIN"
+log "# gpu_bench.sh $(date -u +%FT%TZ) quick=$QUICK device=$DEVICE features: $FEATURES"
 log "# git $(cd "$ROOT" && git rev-parse --short HEAD 2>/dev/null || echo unknown)"
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>&1 | sed 's/^/# gpu: /' | tee -a "$LOG"
 log "# cpu: $(nproc) cores; VK_DRIVER_FILES=${VK_DRIVER_FILES:-unset}; GGPT_FIXTURES=${GGPT_FIXTURES:-not found}"
@@ -170,7 +186,9 @@ fi
 step forward "${EXE[forward]}" --device "$DEVICE" --tokens "$FWD_TOKENS" --repeat 2 --count
 if [ -n "${GGPT_FIXTURES:-}" ]; then
   step parity env GGPT_TEST_DEVICE="$DEVICE" "${EXE[parity]}" --test-threads 1
-  step backends "${EXE[backends]}" wgpu_agrees_with_ndarray --test-threads 1
+  if [ -n "${EXE[backends]:-}" ]; then
+    step backends "${EXE[backends]}" wgpu_agrees_with_ndarray --test-threads 1
+  fi
 else
   log "## parity: SKIPPED, no fixtures (set GGPT_FIXTURES to the shared/fixtures folder)"
   FAILED+=("parity (no fixtures)")

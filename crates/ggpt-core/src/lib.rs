@@ -17,6 +17,7 @@ pub mod camera;
 pub mod chunk_input;
 pub mod chunking;
 pub mod error;
+pub mod figure;
 pub mod io;
 pub mod metrics;
 pub mod progress;

@@ -18,6 +18,7 @@ pub mod report;
 
 pub use error::{EvalError, Result};
 pub use refinement::{
-    EvaluationDetail, SceneEvaluation, evaluate_refinement, format_refinement_table,
+    AllPixelMetrics, EvaluationDetail, SceneEvaluation, evaluate_refinement,
+    format_refinement_table,
 };
 pub use report::{CameraSource, EvalReport, PredSource, evaluate_scene};

@@ -27,14 +27,61 @@ pub struct SceneEvaluation {
     pub ff: PointMetrics,
     /// SfM (DLT) points, on `M_s ∧ V` only (`ratio` = covered fraction); `None` without DLT point.
     pub sfm: Option<PointMetrics>,
+    /// The same SfM points over **all** GT-valid pixels, an uncovered pixel counting as a miss
+    /// (the paper's supplementary Table 5 convention); `None` without DLT point.
+    pub sfm_all_pixels: Option<AllPixelMetrics>,
     /// Refined points ("pred").
     pub refined: PointMetrics,
+    /// Refined points on the SfM-covered pixels only (`M_s ∧ V`, aligned there, as `sfm`): the
+    /// like-for-like comparison with the SfM points; `None` without DLT point.
+    pub refined_on_sfm: Option<PointMetrics>,
     /// Feed-forward cameras.
     pub cameras_ff: Option<CameraMetrics>,
     /// SfM (bundle-adjusted) cameras, i.e. the cameras of the refined output.
     pub cameras_sfm: Option<CameraMetrics>,
     /// Non-fatal problems.
     pub warnings: Vec<String>,
+}
+
+/// Point accuracy over all GT-valid pixels of a prediction that covers only some of them
+/// (the SfM points): uncovered pixels count as misses, so every recall, and therefore every AUC,
+/// is the covered-pixel value times the coverage (same alignment).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct AllPixelMetrics {
+    /// GT-valid pixels (the denominator).
+    pub num_points: usize,
+    /// Covered pixels / GT-valid pixels.
+    pub coverage: f64,
+    /// Recall@k cm for k = 1..=10 (percent of all GT-valid pixels).
+    pub recall_pct: Vec<f64>,
+    /// AUC@1 cm (percent).
+    pub auc_1: f64,
+    /// AUC@3 cm (percent).
+    pub auc_3: f64,
+    /// AUC@5 cm (percent).
+    pub auc_5: f64,
+    /// AUC@10 cm (percent).
+    pub auc_10: f64,
+}
+
+impl AllPixelMetrics {
+    /// From the covered-pixel metrics of a subset evaluation (`covered.ratio` is its coverage);
+    /// `None` when `covered` has no ratio (not a subset evaluation) or an empty denominator.
+    pub fn from_covered(covered: &PointMetrics) -> Option<Self> {
+        let coverage = covered.ratio?;
+        if !(coverage > 0.0 && coverage <= 1.0) {
+            return None;
+        }
+        Some(Self {
+            num_points: (covered.num_points as f64 / coverage).round() as usize,
+            coverage,
+            recall_pct: covered.recall_pct.iter().map(|r| r * coverage).collect(),
+            auc_1: covered.auc_1 * coverage,
+            auc_3: covered.auc_3 * coverage,
+            auc_5: covered.auc_5 * coverage,
+            auc_10: covered.auc_10 * coverage,
+        })
+    }
 }
 
 /// Full evaluation, with the per-pixel errors of the feed-forward and refined points (for the
@@ -45,6 +92,8 @@ pub struct EvaluationDetail {
     pub summary: SceneEvaluation,
     /// Feed-forward points.
     pub ff: PointEvaluation,
+    /// SfM (DLT) points on the pixels they cover; `None` when they could not be evaluated.
+    pub sfm: Option<PointEvaluation>,
     /// Refined points.
     pub refined: PointEvaluation,
 }
@@ -87,12 +136,26 @@ pub fn evaluate_refinement(
         what: format!("{}: refined point accuracy", scene.name),
         source,
     })?;
-    let sfm_metrics = match eval(&sfm.points, Some(&sfm.mask)) {
-        Ok(e) => Some(e.metrics),
+    let sfm_ev = match eval(&sfm.points, Some(&sfm.mask)) {
+        Ok(e) => Some(e),
         Err(e) => {
             warnings.push(format!("SfM points not evaluated: {e}"));
             None
         }
+    };
+    let sfm_metrics = sfm_ev.as_ref().map(|e| e.metrics.clone());
+    let sfm_all_pixels = sfm_metrics.as_ref().and_then(AllPixelMetrics::from_covered);
+    let refined_on_sfm = match sfm_metrics {
+        Some(_) => match eval(refined_points, Some(&sfm.mask)) {
+            Ok(e) => Some(e.metrics),
+            Err(e) => {
+                warnings.push(format!(
+                    "refined points on the SfM pixels not evaluated: {e}"
+                ));
+                None
+            }
+        },
+        None => None,
     };
     let mut cams = |what: &str, c: &ggpt_core::Cameras| match camera_metrics(c, &gt.cameras) {
         Ok(m) => Some(m),
@@ -111,7 +174,9 @@ pub fn evaluate_refinement(
         seed,
         ff: ff_ev.metrics.clone(),
         sfm: sfm_metrics,
+        sfm_all_pixels,
         refined: refined_ev.metrics.clone(),
+        refined_on_sfm,
         cameras_ff,
         cameras_sfm,
         warnings,
@@ -119,6 +184,7 @@ pub fn evaluate_refinement(
     Ok(EvaluationDetail {
         summary,
         ff: ff_ev,
+        sfm: sfm_ev,
         refined: refined_ev,
     })
 }
@@ -139,10 +205,27 @@ pub fn format_refinement_table(ev: &SceneEvaluation) -> String {
         )
     };
     s.push_str(&row("feed-forward (before)", &ev.ff));
-    if let Some(m) = &ev.sfm {
-        s.push_str(&row("SfM / DLT points", m));
+    if let Some(m) = &ev.sfm_all_pixels {
+        s.push_str(&format!(
+            "{:<22} {:>8} {:>7.2} {:>7.2} {:>7.2} {:>7.2} {:>9} {:>7}\n",
+            "SfM / DLT, all pixels",
+            m.num_points,
+            m.auc_1,
+            m.auc_3,
+            m.auc_5,
+            m.auc_10,
+            "-",
+            format!("{:.1}%", 100.0 * m.coverage)
+        ));
     }
     s.push_str(&row("GGPT refined (after)", &ev.refined));
+    if let Some(m) = &ev.sfm {
+        s.push_str("\non the SfM-covered pixels only (each aligned there):\n");
+        s.push_str(&row("SfM / DLT points", m));
+    }
+    if let Some(m) = &ev.refined_on_sfm {
+        s.push_str(&row("GGPT refined", m));
+    }
     s.push_str(&format!(
         "\n{:<22} {:>8} {:>7} {:>7} {:>7} {:>7}\n",
         "cameras", "pairs", "AUC@1", "AUC@3", "AUC@5", "AUC@10"
@@ -159,6 +242,50 @@ pub fn format_refinement_table(ev: &SceneEvaluation) -> String {
         }
     }
     s.push_str("point AUC@τ: % of GT pixels within τ cm after robust Sim(3) alignment to the GT (pipeline.md §10.2);\n");
-    s.push_str("SfM points are evaluated on the pixels that have one (ratio); camera AUC@τ in degrees (§10.3).\n");
+    s.push_str("\"all pixels\" counts a pixel without an SfM point as a miss (AUC = covered AUC x coverage);\n");
+    s.push_str("ratio: evaluated / GT-valid pixels; camera AUC@τ in degrees (§10.3).\n");
     s
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use ggpt_core::sim3::AlignMethod;
+
+    fn covered(ratio: Option<f64>) -> PointMetrics {
+        PointMetrics {
+            num_points: 300,
+            recall_pct: (1..=10).map(|k| 10.0 * k as f64).collect(),
+            auc_1: 20.0,
+            auc_3: 40.0,
+            auc_5: 60.0,
+            auc_10: 80.0,
+            mean_cm: 1.0,
+            median_cm: 0.5,
+            ratio,
+            align: AlignMethod::PlainUmeyama,
+            align_inliers: None,
+            gt_from_pred: [
+                [1.0, 0.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0, 0.0],
+                [0.0, 0.0, 1.0, 0.0],
+            ],
+        }
+    }
+
+    /// Uncovered pixels are misses: recalls and AUCs scale with the coverage.
+    #[test]
+    fn all_pixel_metrics_count_uncovered_pixels_as_misses() {
+        let m = AllPixelMetrics::from_covered(&covered(Some(0.25))).unwrap();
+        assert_eq!(m.num_points, 1200);
+        assert_eq!(m.coverage, 0.25);
+        assert_eq!(
+            (m.auc_1, m.auc_3, m.auc_5, m.auc_10),
+            (5.0, 10.0, 15.0, 20.0)
+        );
+        assert_eq!(m.recall_pct[9], 25.0);
+        assert!(AllPixelMetrics::from_covered(&covered(None)).is_none());
+        assert!(AllPixelMetrics::from_covered(&covered(Some(0.0))).is_none());
+    }
 }

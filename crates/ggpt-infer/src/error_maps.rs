@@ -1,14 +1,22 @@
 //! Per-view PNG error maps (colour-mapped point errors, like the paper's qualitative figures).
 //!
-//! One file per view, `error_maps/view_{i:03}.png`, three panels side by side at ff
-//! resolution: the input image, the error of the feed-forward points and the error of the
-//! refined points (both after their own Sim(3) alignment to the GT, `pipeline.md` §10.2).
-//! Errors are clamped to `[0, max_cm]` and colour-mapped with Turbo (blue = 0, red = `max_cm`);
-//! pixels without valid GT are dark grey.
+//! One file per view, `error_maps/view_{i:03}.png`: a title row, four panels side by side at ff
+//! resolution, and a colour bar with its cm scale:
+//!
+//! ```text
+//! | input image | feed-forward error | SfM / DLT points | GGPT refined error |
+//! [ turbo colour bar 0 .. max_cm, ticks in cm ]
+//! ```
+//!
+//! Each point set is Sim(3)-aligned to the GT on its own (`pipeline.md` §10.2); the SfM panel
+//! shows the error of the SfM points where they exist, i.e. their coverage. All three error
+//! panels share one scale: errors clamped to `[0, max_cm]`, Turbo colours (blue = 0, red =
+//! `max_cm`). Pixels without GT (or, in the SfM panel, without an SfM point) are dark grey.
 
 use std::path::PathBuf;
 
 use ggpt_core::Dims;
+use ggpt_core::figure::Canvas;
 use ggpt_core::metrics::PointEvaluation;
 use ggpt_scene::export::{Rgb8Image, RunOutput};
 
@@ -16,8 +24,22 @@ use crate::{InferError, Result};
 
 /// Default upper end of the colour scale (cm).
 pub const DEFAULT_ERROR_MAP_MAX_CM: f64 = 10.0;
-/// Colour of pixels without ground truth.
+/// Colour of pixels without ground truth (or without an SfM point in the SfM panel).
 const NO_GT_COLOR: [u8; 3] = [40, 40, 40];
+/// Background of the title row and the colour-bar strip.
+const PAPER: [u8; 3] = [255, 255, 255];
+/// Text colour.
+const INK: [u8; 3] = [25, 25, 25];
+/// Height of the title row (pixels).
+const TITLE_H: usize = 22;
+/// Height of the colour bar strip (bar + tick labels).
+const BAR_STRIP_H: usize = 34;
+/// Height of the colour bar itself.
+const BAR_H: usize = 10;
+/// Gap between panels.
+const GAP: usize = 4;
+/// Font size of titles and tick labels.
+const TEXT_PX: f32 = 13.0;
 
 /// Turbo colour map (polynomial approximation by Google, max error < 1 %) at `t ∈ [0, 1]`.
 pub fn turbo(t: f64) -> [u8; 3] {
@@ -37,8 +59,8 @@ pub fn turbo(t: f64) -> [u8; 3] {
     [r, g, b].map(|v| (255.0 * v.clamp(0.0, 1.0)).round() as u8)
 }
 
-/// Per-pixel error panel of one view from a [`PointEvaluation`] (errors listed over its mask in
-/// pixel order).
+/// Per-pixel error panel of all views from a [`PointEvaluation`] (errors listed over its mask
+/// in pixel order).
 fn error_image(ev: &PointEvaluation, dims: Dims, max_cm: f64) -> Result<Vec<[u8; 3]>> {
     let px = dims.pixels();
     if ev.mask.len() != px {
@@ -60,27 +82,67 @@ fn error_image(ev: &PointEvaluation, dims: Dims, max_cm: f64) -> Result<Vec<[u8;
     Ok(out)
 }
 
+/// The point sets of one error map: feed-forward, SfM (optional: a scene whose SfM points
+/// could not be evaluated has an empty panel) and refined, each with its evaluation.
+#[derive(Debug, Clone, Copy)]
+pub struct ErrorMapInputs<'a> {
+    /// Feed-forward points.
+    pub ff: &'a PointEvaluation,
+    /// SfM / DLT points on the pixels they cover.
+    pub sfm: Option<&'a PointEvaluation>,
+    /// Refined points.
+    pub refined: &'a PointEvaluation,
+}
+
 /// Writes the error maps of [`render_error_maps`] through the run's output writer
 /// (`error_maps/view_{i:03}.png`, [`RunOutput::write_error_maps`]). Returns the files written.
 pub fn write_error_maps(
     out: &mut RunOutput,
     dims: Dims,
     images: &[f32],
-    ff: &PointEvaluation,
-    refined: &PointEvaluation,
+    inputs: ErrorMapInputs<'_>,
     max_cm: f64,
 ) -> Result<Vec<PathBuf>> {
-    let maps = render_error_maps(dims, images, ff, refined, max_cm)?;
+    let maps = render_error_maps(dims, images, inputs, max_cm)?;
     Ok(out.write_error_maps(&maps)?)
 }
 
-/// One RGB image per view, three panels side by side: image | feed-forward error | refined
-/// error (`[h, 3 w, 3]`). `images` is `[N, h, w, 3]` in `[0, 1]`.
+/// Tick step of the colour bar for a scale of `max_cm`: 1, 2 or 5 × 10^k, about 5 ticks.
+fn tick_step(max_cm: f64) -> f64 {
+    let raw = max_cm / 5.0;
+    let mag = 10f64.powf(raw.log10().floor());
+    [1.0, 2.0, 5.0, 10.0]
+        .into_iter()
+        .map(|m| m * mag)
+        .find(|&s| s >= raw)
+        .unwrap_or(10.0 * mag)
+}
+
+/// `{v}` without a trailing `.0` for whole numbers.
+fn tick_label(v: f64) -> String {
+    if (v - v.round()).abs() < 1e-9 {
+        format!("{}", v.round() as i64)
+    } else {
+        format!("{v:.1}")
+    }
+}
+
+/// `text` shortened (from the end) until it fits a panel of `w` pixels with a 2-pixel margin.
+fn fit(text: &str, w: usize) -> String {
+    let mut t = text.to_string();
+    while !t.is_empty() && Canvas::text_width(TEXT_PX, &t) > w as f32 - 4.0 {
+        t.pop();
+    }
+    t
+}
+
+/// One RGB image per view (`[TITLE_H + h + BAR_STRIP_H, 4 w + 3 GAP, 3]`): titles, then
+/// image | feed-forward error | SfM points | refined error, then the colour bar with its cm
+/// ticks. `images` is `[N, h, w, 3]` in `[0, 1]`.
 pub fn render_error_maps(
     dims: Dims,
     images: &[f32],
-    ff: &PointEvaluation,
-    refined: &PointEvaluation,
+    inputs: ErrorMapInputs<'_>,
     max_cm: f64,
 ) -> Result<Vec<Rgb8Image>> {
     if images.len() != 3 * dims.pixels() {
@@ -95,32 +157,82 @@ pub fn render_error_maps(
             "error map: colour scale maximum must be > 0 cm, got {max_cm}"
         )));
     }
-    let a = error_image(ff, dims, max_cm)?;
-    let b = error_image(refined, dims, max_cm)?;
+    let ff = error_image(inputs.ff, dims, max_cm)?;
+    let refined = error_image(inputs.refined, dims, max_cm)?;
+    let sfm = match inputs.sfm {
+        Some(ev) => error_image(ev, dims, max_cm)?,
+        None => vec![NO_GT_COLOR; dims.pixels()],
+    };
+    let auc = |ev: &PointEvaluation| format!("AUC@5 {:.1}", ev.metrics.auc_5);
+    let titles = [
+        "input image".to_string(),
+        format!("feed-forward error, {}", auc(inputs.ff)),
+        match inputs.sfm {
+            Some(ev) => format!(
+                "SfM points, {:.1} % of pixels",
+                100.0 * ev.metrics.ratio.unwrap_or(0.0)
+            ),
+            None => "SfM points: none evaluated".to_string(),
+        },
+        format!("GGPT refined error, {}", auc(inputs.refined)),
+    ];
     let (h, w) = (dims.h, dims.w);
+    let width = 4 * w + 3 * GAP;
+    let height = TITLE_H + h + BAR_STRIP_H;
     let mut maps = Vec::with_capacity(dims.n);
     for v in 0..dims.n {
-        let mut rgb = Vec::with_capacity(3 * 3 * w * h);
-        for y in 0..h {
-            let row = dims.index(v, y, 0);
-            for x in 0..w {
-                let p = row + x;
-                rgb.extend(
-                    images[3 * p..3 * p + 3]
-                        .iter()
-                        .map(|&c| ggpt_scene::export::color_u8(c)),
-                );
-            }
-            for panel in [&a, &b] {
-                for x in 0..w {
-                    rgb.extend(panel[row + x]);
-                }
-            }
+        let mut canvas = Canvas::new(width, height, PAPER);
+        let first = dims.index(v, 0, 0);
+        let view = first..first + h * w;
+        let image: Vec<[u8; 3]> = images[3 * view.start..3 * view.end]
+            .chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]].map(ggpt_scene::export::color_u8))
+            .collect();
+        for (k, (panel, title)) in [
+            &image[..],
+            &ff[view.clone()],
+            &sfm[view.clone()],
+            &refined[view.clone()],
+        ]
+        .into_iter()
+        .zip(&titles)
+        .enumerate()
+        {
+            let x0 = k * (w + GAP);
+            canvas.blit(x0, TITLE_H, w, panel);
+            canvas.text(x0 as f32 + 2.0, 4.0, TEXT_PX, &fit(title, w), INK);
         }
+        // the colour bar under the three error panels, with ticks in cm
+        let (bar_x, bar_w) = (w + GAP, 3 * w + 2 * GAP);
+        let bar_y = TITLE_H + h + 4;
+        for x in 0..bar_w {
+            let c = turbo(x as f64 / (bar_w.max(2) - 1) as f64);
+            canvas.fill_rect(bar_x + x, bar_y, 1, BAR_H, c);
+        }
+        let step = tick_step(max_cm);
+        let mut t = 0.0;
+        while t <= max_cm + 1e-9 {
+            let x = bar_x + ((t / max_cm) * (bar_w - 1) as f64).round() as usize;
+            canvas.fill_rect(x, bar_y + BAR_H, 1, 3, INK);
+            let label = if t + step > max_cm + 1e-9 {
+                format!("{} cm", tick_label(t))
+            } else {
+                tick_label(t)
+            };
+            let lw = Canvas::text_width(TEXT_PX, &label);
+            // centred on its tick, kept inside the bar where it fits (no clamp: a label wider
+            // than a tiny bar would make its bounds cross)
+            let lx = (x as f32 - lw / 2.0)
+                .min((bar_x + bar_w) as f32 - lw)
+                .max(bar_x as f32);
+            canvas.text(lx, (bar_y + BAR_H + 3) as f32, TEXT_PX, &label, INK);
+            t += step;
+        }
+        canvas.text(2.0, (bar_y - 2) as f32, TEXT_PX, &fit("point error", w), INK);
         maps.push(Rgb8Image {
-            width: 3 * w,
-            height: h,
-            rgb,
+            width,
+            height,
+            rgb: canvas.rgb,
         });
     }
     Ok(maps)
@@ -143,7 +255,7 @@ mod tests {
     }
 
     #[test]
-    fn writes_three_panel_pngs() {
+    fn writes_four_panel_pngs_with_titles_and_a_colour_bar() {
         let dims = Dims { n: 2, h: 3, w: 4 };
         let px = dims.pixels();
         let mask: Vec<bool> = (0..px).map(|p| p % 5 != 0).collect();
@@ -168,16 +280,62 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let mut out = RunOutput::create(dir.path()).unwrap();
         let images = vec![0.5f32; 3 * px];
-        let files = write_error_maps(&mut out, dims, &images, &ev, &ev, 10.0).unwrap();
+        let inputs = ErrorMapInputs {
+            ff: &ev,
+            sfm: Some(&ev),
+            refined: &ev,
+        };
+        let files = write_error_maps(&mut out, dims, &images, inputs, 10.0).unwrap();
         assert_eq!(files.len(), 2);
         let img = image::open(&files[1]).unwrap().to_rgb8();
-        assert_eq!(img.dimensions(), (12, 3));
-        // View 1, pixel (y 0, x 0) is p = 12 -> mask true (12 % 5 != 0); panel 2 starts at x = 4.
-        assert_eq!(img.get_pixel(0, 0).0, [127, 127, 127]);
-        assert_eq!(img.get_pixel(4, 0).0, img.get_pixel(8, 0).0);
+        let (w, h) = (dims.w as u32, dims.h as u32);
+        let pw = w + GAP as u32;
+        assert_eq!(
+            img.dimensions(),
+            (
+                4 * w + 3 * GAP as u32,
+                TITLE_H as u32 + h + BAR_STRIP_H as u32
+            )
+        );
+        let y0 = TITLE_H as u32;
+        // View 1, pixel (y 0, x 0) is p = 12 -> mask true (12 % 5 != 0).
+        assert_eq!(img.get_pixel(0, y0).0, [127, 127, 127]);
+        // the three error panels share one scale
+        assert_eq!(img.get_pixel(pw, y0).0, img.get_pixel(3 * pw, y0).0);
+        assert_eq!(img.get_pixel(pw, y0).0, img.get_pixel(2 * pw, y0).0);
         // p = 15 (view 1, y 0, x 3) has no GT -> grey.
-        assert_eq!(img.get_pixel(4 + 3, 0).0, NO_GT_COLOR);
-        assert!(write_error_maps(&mut out, dims, &images[1..], &ev, &ev, 10.0).is_err());
-        assert!(write_error_maps(&mut out, dims, &images, &ev, &ev, 0.0).is_err());
+        assert_eq!(img.get_pixel(pw + 3, y0).0, NO_GT_COLOR);
+        // the colour bar runs from turbo(0) to turbo(1) under the error panels
+        let bar_y = y0 + h + 4;
+        assert_eq!(img.get_pixel(pw, bar_y).0, turbo(0.0));
+        assert_eq!(
+            img.get_pixel(4 * w + 3 * GAP as u32 - 1, bar_y).0,
+            turbo(1.0)
+        );
+        // no SfM evaluation: an empty SfM panel
+        let maps = render_error_maps(
+            dims,
+            &images,
+            ErrorMapInputs {
+                sfm: None,
+                ..inputs
+            },
+            10.0,
+        )
+        .unwrap();
+        let p = 3 * ((TITLE_H * maps[1].width) + 2 * pw as usize);
+        assert_eq!(&maps[1].rgb[p..p + 3], &NO_GT_COLOR);
+        assert!(write_error_maps(&mut out, dims, &images[1..], inputs, 10.0).is_err());
+        assert!(write_error_maps(&mut out, dims, &images, inputs, 0.0).is_err());
+    }
+
+    #[test]
+    fn colour_bar_ticks() {
+        assert_eq!(tick_step(10.0), 2.0);
+        assert_eq!(tick_step(5.0), 1.0);
+        assert_eq!(tick_step(30.0), 10.0);
+        assert_eq!(tick_step(0.5), 0.1);
+        assert_eq!(tick_label(4.0), "4");
+        assert_eq!(tick_label(0.5), "0.5");
     }
 }

@@ -15,7 +15,7 @@ use ggpt_sfm::ba::CameraModel;
 use ggpt_sfm::masks::Preset;
 use ggpt_sfm::pipeline::{SfmConfig, SfmSummary, run_sfm_with_progress};
 
-use crate::error_maps::{DEFAULT_ERROR_MAP_MAX_CM, write_error_maps};
+use crate::error_maps::{DEFAULT_ERROR_MAP_MAX_CM, ErrorMapInputs, write_error_maps};
 use crate::refiner::{BurnRefiner, RefinerStats};
 use crate::rss::{StageLog, StageTiming, mib, peak_rss_bytes, reset_peak_rss};
 use crate::{InferError, Result};
@@ -235,8 +235,11 @@ pub fn run_scene(
                 &mut output,
                 scene.dims,
                 &scene.images,
-                &detail.ff,
-                &detail.refined,
+                ErrorMapInputs {
+                    ff: &detail.ff,
+                    sfm: detail.sfm.as_ref(),
+                    refined: &detail.refined,
+                },
                 opts.error_map_max_cm,
             )?;
         }

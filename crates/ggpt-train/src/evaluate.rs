@@ -133,6 +133,16 @@ pub struct HeldOutScene {
     /// AUC@5 of the DLT points on `M_s ∧ V` (for reference); `None` when the scene has none
     /// to evaluate.
     pub sfm_auc5: Option<f64>,
+    /// AUC@5 of the DLT points over all GT pixels, uncovered ones counted as misses (the
+    /// paper's convention, [`ggpt_eval::AllPixelMetrics`]).
+    #[serde(default)]
+    pub sfm_all_auc5: Option<f64>,
+    /// Fraction of GT pixels with a DLT point.
+    #[serde(default)]
+    pub sfm_coverage: Option<f64>,
+    /// AUC@5 of the refined points on the DLT-covered pixels (aligned there, as `sfm_auc5`).
+    #[serde(default)]
+    pub refined_on_sfm_auc5: Option<f64>,
     /// Fraction of GT pixels covered by at least one chunk.
     pub covered: f64,
     /// Chunks.
@@ -154,6 +164,12 @@ pub struct HeldOutSummary {
     pub refined_auc10: f64,
     /// Mean DLT AUC@5 over the scenes that have one (`None`: no scene has one).
     pub sfm_auc5: Option<f64>,
+    /// Mean DLT AUC@5 over all GT pixels (uncovered = miss), over the scenes that have one.
+    #[serde(default)]
+    pub sfm_all_auc5: Option<f64>,
+    /// Mean refined AUC@5 on the DLT-covered pixels, over the scenes that have one.
+    #[serde(default)]
+    pub refined_on_sfm_auc5: Option<f64>,
 }
 
 impl HeldOutSummary {
@@ -164,20 +180,26 @@ impl HeldOutSummary {
         }
         let n = results.len() as f64;
         let mean = |f: fn(&HeldOutScene) -> f64| results.iter().map(f).sum::<f64>() / n;
-        let sfm: Vec<f64> = results.iter().filter_map(|r| r.sfm_auc5).collect();
+        let mean_of = |f: fn(&HeldOutScene) -> Option<f64>| {
+            let v: Vec<f64> = results.iter().filter_map(f).collect();
+            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+        };
         Some(HeldOutSummary {
             scenes: results.len(),
             ff_auc5: mean(|r| r.ff_auc5),
             ff_auc10: mean(|r| r.ff_auc10),
             refined_auc5: mean(|r| r.refined_auc5),
             refined_auc10: mean(|r| r.refined_auc10),
-            sfm_auc5: (!sfm.is_empty()).then(|| sfm.iter().sum::<f64>() / sfm.len() as f64),
+            sfm_auc5: mean_of(|r| r.sfm_auc5),
+            sfm_all_auc5: mean_of(|r| r.sfm_all_auc5),
+            refined_on_sfm_auc5: mean_of(|r| r.refined_on_sfm_auc5),
         })
     }
 
-    /// One line: `mean over N held-out scenes: AUC@5 a -> b (+d), AUC@10 ...`.
+    /// One line: `mean over N held-out scenes: AUC@5 a -> b (+d), AUC@10 ...`, then the DLT
+    /// points over all pixels and the like-for-like comparison on the DLT pixels when known.
     pub fn describe(&self) -> String {
-        format!(
+        let mut s = format!(
             "mean over {} held-out scenes: AUC@5 {:.1} -> {:.1} ({:+.1}), AUC@10 {:.1} -> {:.1} ({:+.1})",
             self.scenes,
             self.ff_auc5,
@@ -186,7 +208,16 @@ impl HeldOutSummary {
             self.ff_auc10,
             self.refined_auc10,
             self.refined_auc10 - self.ff_auc10
-        )
+        );
+        if let Some(all) = self.sfm_all_auc5 {
+            s.push_str(&format!("; DLT AUC@5 over all pixels {all:.1}"));
+        }
+        if let (Some(dlt), Some(refined)) = (self.sfm_auc5, self.refined_on_sfm_auc5) {
+            s.push_str(&format!(
+                "; on the DLT pixels: DLT {dlt:.1}, refined {refined:.1}"
+            ));
+        }
+        s
     }
 }
 
@@ -194,18 +225,26 @@ impl HeldOutScene {
     /// One table row: name, feed-forward and refined AUC@5/10, DLT AUC@5, coverage, chunks.
     pub fn describe(&self) -> String {
         format!(
-            "{:<28} ff AUC@5 {:5.1} AUC@10 {:5.1} | refined AUC@5 {:5.1} AUC@10 {:5.1} | DLT AUC@5 {} | covered {:.2} | {} chunks",
+            "{:<28} ff AUC@5 {:5.1} AUC@10 {:5.1} | refined AUC@5 {:5.1} AUC@10 {:5.1} | DLT AUC@5 {} (all pixels {}, coverage {}) | refined on DLT pixels {} | covered {:.2} | {} chunks",
             self.name,
             self.ff_auc5,
             self.ff_auc10,
             self.refined_auc5,
             self.refined_auc10,
-            self.sfm_auc5
-                .map_or("    -".to_string(), |v| format!("{v:5.1}")),
+            opt(self.sfm_auc5),
+            opt(self.sfm_all_auc5),
+            self.sfm_coverage
+                .map_or("-".to_string(), |c| format!("{:.1}%", 100.0 * c)),
+            opt(self.refined_on_sfm_auc5),
             self.covered,
             self.chunks
         )
     }
+}
+
+/// `{v:5.1}`, or `    -` for `None`.
+fn opt(v: Option<f64>) -> String {
+    v.map_or("    -".to_string(), |v| format!("{v:5.1}"))
 }
 
 /// Refines a held-out scene with `refiner` (`pipeline.md` §3-§8) and evaluates the input and
@@ -238,6 +277,9 @@ pub fn evaluate_scene(
         refined_auc5: ev.refined.auc_5,
         refined_auc10: ev.refined.auc_10,
         sfm_auc5: ev.sfm.map(|m| m.auc_5),
+        sfm_all_auc5: ev.sfm_all_pixels.as_ref().map(|m| m.auc_5),
+        sfm_coverage: ev.sfm_all_pixels.as_ref().map(|m| m.coverage),
+        refined_on_sfm_auc5: ev.refined_on_sfm.map(|m| m.auc_5),
         covered: cov as f64 / n_gt as f64,
         chunks: refined.chunks.len(),
     })
@@ -256,6 +298,9 @@ mod tests {
             refined_auc5: a + 20.0,
             refined_auc10: a + 30.0,
             sfm_auc5: sfm,
+            sfm_all_auc5: sfm.map(|v| v / 2.0),
+            sfm_coverage: sfm.map(|_| 0.5),
+            refined_on_sfm_auc5: sfm.map(|v| v + 1.0),
             covered: 1.0,
             chunks: 3,
         };
@@ -268,6 +313,24 @@ mod tests {
             "{}",
             s.describe()
         );
+        assert_eq!(
+            (s.sfm_all_auc5, s.refined_on_sfm_auc5),
+            (Some(25.0), Some(51.0))
+        );
+        assert!(
+            s.describe().contains(
+                "DLT AUC@5 over all pixels 25.0; on the DLT pixels: DLT 50.0, refined 51.0"
+            ),
+            "{}",
+            s.describe()
+        );
         assert!(r("a", 1.0, None).describe().contains("DLT AUC@5     -"));
+        assert!(
+            r("a", 1.0, Some(40.0)).describe().contains(
+                "DLT AUC@5  40.0 (all pixels  20.0, coverage 50.0%) | refined on DLT pixels  41.0"
+            ),
+            "{}",
+            r("a", 1.0, Some(40.0)).describe()
+        );
     }
 }

@@ -208,8 +208,8 @@ pub struct FigureSummary {
     pub val_plot: Option<Rect>,
 }
 
-/// The embedded font: DejaVu Sans (Bitstream Vera license, `assets/LICENSE-DejaVuSans.txt`).
-static FONT_TTF: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
+/// The embedded font ([`ggpt_core::figure::FONT_TTF`], DejaVu Sans).
+static FONT_TTF: &[u8] = ggpt_core::figure::FONT_TTF;
 /// Family the embedded font is registered under (plotters' default for axis labels).
 const FONT: &str = "sans-serif";
 /// Font size of the panel titles.
