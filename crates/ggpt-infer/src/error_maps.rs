@@ -228,7 +228,13 @@ pub fn render_error_maps(
             canvas.text(lx, (bar_y + BAR_H + 3) as f32, TEXT_PX, &label, INK);
             t += step;
         }
-        canvas.text(2.0, (bar_y - 2) as f32, TEXT_PX, &fit("point error", w), INK);
+        canvas.text(
+            2.0,
+            (bar_y - 2) as f32,
+            TEXT_PX,
+            &fit("point error", w),
+            INK,
+        );
         maps.push(Rgb8Image {
             width,
             height,
