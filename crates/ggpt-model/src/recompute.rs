@@ -464,6 +464,20 @@ mod tests {
         );
     }
 
+    /// `got` has `want`'s length and every value within `2e-5` of `want`'s largest magnitude.
+    fn assert_close(name: &str, want: &[f32], got: &[f32]) {
+        let max = want.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-12);
+        assert_eq!(want.len(), got.len(), "{name}: lengths");
+        let worst = want
+            .iter()
+            .zip(got)
+            .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+        assert!(
+            worst <= 2e-5 * max,
+            "{name}: worst difference {worst:e} of max {max:e}"
+        );
+    }
+
     /// The host backward of every block part (CPE, attention, MLP) equals autodiff of that
     /// part, with the intermediate kept by the forward and recomputing it, with and without an
     /// active drop path.
@@ -496,18 +510,6 @@ mod tests {
             )
         };
         let (x, x_conv, g) = (random(), random(), random());
-        let close = |name: &str, a: &[f32], b: &[f32]| {
-            let max = a.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-12);
-            assert_eq!(a.len(), b.len(), "{name}: lengths");
-            let worst = a
-                .iter()
-                .zip(b)
-                .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
-            assert!(
-                worst <= 2e-5 * max,
-                "{name}: worst difference {worst:e} of max {max:e}"
-            );
-        };
         for block in [0, active] {
             let b = &blocks[block];
             let fb = &frozen_blocks[block];
@@ -570,7 +572,7 @@ mod tests {
                     .expect("host backward");
                     assert_eq!(d.inputs.len(), want_inputs.len(), "{label}");
                     for (w, got) in want_inputs.iter().zip(&d.inputs) {
-                        close(
+                        assert_close(
                             &format!("{label} input"),
                             w,
                             &read_tensor_f32(got, "d input").unwrap(),
@@ -590,7 +592,7 @@ mod tests {
                     let mut compared = 0;
                     for ((name, w), (_, got)) in want.iter().zip(&got) {
                         if !w.is_empty() {
-                            close(&format!("{label} {name}"), w, got);
+                            assert_close(&format!("{label} {name}"), w, got);
                             compared += 1;
                         }
                     }
@@ -662,12 +664,7 @@ mod tests {
                     .attn_part_backward_grouped(x.clone(), g.clone(), level, core, budget)
                     .expect("grouped backward");
                 let got_x = read_tensor_f32(&d.inputs[0], "d x").unwrap();
-                let max = want_x.iter().fold(1e-12f32, |m, v| m.max(v.abs()));
-                let worst = want_x
-                    .iter()
-                    .zip(&got_x)
-                    .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
-                assert!(worst <= 2e-5 * max, "{label} input: {worst:e} of {max:e}");
+                assert_close(&format!("{label} input"), &want_x, &got_x);
                 let mut acc = GradientsParams::new();
                 d.vectors
                     .into_iter()
@@ -681,13 +678,7 @@ mod tests {
                     if w.is_empty() {
                         continue;
                     }
-                    assert_eq!(w.len(), got.len(), "{label} {name}: missing gradient");
-                    let max = w.iter().fold(1e-12f32, |m, v| m.max(v.abs()));
-                    let worst = w
-                        .iter()
-                        .zip(got)
-                        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
-                    assert!(worst <= 2e-5 * max, "{label} {name}: {worst:e} of {max:e}");
+                    assert_close(&format!("{label} {name}"), w, got);
                     compared += 1;
                 }
                 assert_eq!(compared, 6, "{label}: LN1 (2), qkv (2), proj (2)");

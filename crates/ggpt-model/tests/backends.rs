@@ -84,9 +84,11 @@ fn forward_values(model: &Ggpt, batch: &PreparedBatch) -> Vec<f32> {
     v
 }
 
-/// Collects `(path, gradient values)` of every float parameter.
+/// Collects `(path, gradient values)` of every trainable float parameter from a
+/// [`GradientsParams`] (plain autodiff through `GradientsParams::from_grads`, or the segment
+/// recomputation).
 struct GradCollector<'a> {
-    grads: &'a burn::tensor::Gradients,
+    grads: &'a GradientsParams,
     path: Vec<String>,
     out: Vec<(String, Option<Vec<f32>>)>,
 }
@@ -106,9 +108,20 @@ impl ModuleVisitor for GradCollector<'_> {
         ) {
             return;
         }
-        let g = param.val().grad(self.grads).map(|g| values(&g));
+        let g = self.grads.get::<D>(param.id).map(|g| values(&g));
         self.out.push((self.path.join("."), g));
     }
+}
+
+/// `(path, gradient)` of every trainable parameter of `model`.
+fn collect_gradients(model: &Ggpt, grads: &GradientsParams) -> Vec<(String, Option<Vec<f32>>)> {
+    let mut c = GradCollector {
+        grads,
+        path: Vec::new(),
+        out: Vec::new(),
+    };
+    model.visit(&mut c);
+    c.out
 }
 
 /// Training-mode loss: squared distance of the outputs to a shifted target plus a confidence term.
@@ -133,14 +146,7 @@ fn gradients(
 ) -> Vec<(String, Option<Vec<f32>>)> {
     let batch = prepare_chunks(cfg, chunks, device).expect("plan");
     let loss = loss_of(model, &batch);
-    let grads = loss.backward();
-    let mut c = GradCollector {
-        grads: &grads,
-        path: Vec::new(),
-        out: Vec::new(),
-    };
-    model.visit(&mut c);
-    c.out
+    collect_gradients(model, &GradientsParams::from_grads(loss.backward(), model))
 }
 
 /// `(path, gradient)` of every trainable parameter from the segment recomputation
@@ -152,41 +158,12 @@ fn recomputed_gradient_values(
     cfg: &GgptConfig,
     device: &Device,
 ) -> Vec<(String, Option<Vec<f32>>)> {
-    struct Collect<'a> {
-        grads: &'a GradientsParams,
-        path: Vec<String>,
-        out: Vec<(String, Option<Vec<f32>>)>,
-    }
-    impl ModuleVisitor for Collect<'_> {
-        fn enter_module(&mut self, name: &str, _container_type: &str) {
-            self.path.push(name.to_string());
-        }
-        fn exit_module(&mut self, _name: &str, _container_type: &str) {
-            self.path.pop();
-        }
-        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-            if matches!(
-                self.path.last().map(String::as_str),
-                Some("running_mean" | "running_var")
-            ) {
-                return;
-            }
-            let g = self.grads.get::<D>(param.id).map(|g| values(&g));
-            self.out.push((self.path.join("."), g));
-        }
-    }
     let batch = prepare_chunks(cfg, chunks, device).expect("plan");
     let (grads, ()) = ggpt_model::recompute::recomputed_gradients(model, &batch, |out| {
         Ok::<_, String>((loss_of_output(out, &batch), ()))
     })
     .unwrap();
-    let mut c = Collect {
-        grads: &grads,
-        path: Vec::new(),
-        out: Vec::new(),
-    };
-    model.visit(&mut c);
-    c.out
+    collect_gradients(model, &grads)
 }
 
 fn tiny_cfg() -> GgptConfig {
