@@ -282,6 +282,28 @@ impl SceneKindArg {
     }
 }
 
+/// Simulation regime of synthetic scenes (`ggpt_synth::Regime`, `docs/synthetic.md`).
+#[derive(clap::ValueEnum, Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RegimeArg {
+    /// Realistic matcher failures and VGGT-like structured feed-forward error, calibrated to the
+    /// paper's ranges (SfM covers 20-70 % of the pixels).
+    #[default]
+    Benchmark,
+    /// The first regime: dense, near-exact SfM guidance (reproduces earlier numbers).
+    Easy,
+}
+
+impl RegimeArg {
+    /// The regime's name, as `ggpt_synth::Regime::parse` takes it.
+    pub fn name(self) -> &'static str {
+        match self {
+            RegimeArg::Benchmark => "benchmark",
+            RegimeArg::Easy => "easy",
+        }
+    }
+}
+
 /// Progress bars on or off.
 #[derive(Args, Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct ProgressArgs {

@@ -20,8 +20,8 @@ pub mod progress;
 pub mod signals;
 
 pub use args::{
-    ChunkingArgs, DeviceArg, DeviceArgs, ModelArgs, ModelPreset, ProgressArgs, SceneKindArg,
-    SfmPresetArg,
+    ChunkingArgs, DeviceArg, DeviceArgs, ModelArgs, ModelPreset, ProgressArgs, RegimeArg,
+    SceneKindArg, SfmPresetArg,
 };
 pub use logging::init_logging;
 pub use progress::{Bar, StageBars, SyncStageBars, println_above};

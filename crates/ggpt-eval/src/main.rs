@@ -10,7 +10,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use ggpt_cli::{ProgressArgs, SceneKindArg};
+use ggpt_cli::{ProgressArgs, RegimeArg, SceneKindArg};
 use ggpt_core::io::scene_dir::read_scene;
 
 use ggpt_core::io::atomic::write_json_atomic;
@@ -118,6 +118,10 @@ struct DemoArgs {
     /// Scene family.
     #[arg(long, value_enum, default_value_t)]
     kind: SceneKindArg,
+    /// Simulation regime: `benchmark` (matcher failure modes, structured feed-forward error,
+    /// the paper's ranges) or `easy` (the first, dense and clean regime; docs/synthetic.md).
+    #[arg(long, value_enum, default_value_t)]
+    regime: RegimeArg,
     /// Also simulate dense matches (slower; lets the SfM stage run on the written scene).
     #[arg(long)]
     with_matches: bool,
@@ -170,6 +174,7 @@ fn run_demo(a: DemoArgs) -> Result<()> {
         height: a.height,
         with_matches: a.with_matches,
         kind: ggpt_synth::SceneKind::parse(a.kind.name())?,
+        regime: ggpt_synth::Regime::parse(a.regime.name())?,
     };
     let out = demo::run_demo(&opts)?;
     demo::print_demo(&out, &a.out);

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use ggpt_core::io::scene_dir::write_scene;
 use ggpt_model::device::device_from_name;
-use ggpt_synth::{SceneKind, SynthConfig, generate};
+use ggpt_synth::{Regime, SceneKind, SynthConfig, generate};
 
 use ggpt_model::ModelError;
 use ggpt_model::model_dir::{ModelSpec, load_model, resolve_model, shipped_model_dir};
@@ -25,6 +25,8 @@ pub struct DemoOptions {
     pub seed: u64,
     /// Scene family.
     pub kind: SceneKind,
+    /// Simulation regime (`docs/synthetic.md`).
+    pub regime: Regime,
     /// Feed-forward width (multiple of 14).
     pub width: usize,
     /// Feed-forward height (multiple of 14).
@@ -110,7 +112,7 @@ pub fn run_demo(
         height: opts.height,
         seed: opts.seed,
         matches: true,
-        ..SynthConfig::default()
+        ..SynthConfig::for_regime(opts.regime)
     };
     let synth = generate(&cfg)?;
     let mut scene = synth.scene;

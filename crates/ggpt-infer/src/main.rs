@@ -12,7 +12,8 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use ggpt_cli::{
-    ChunkingArgs, DeviceArgs, ModelArgs, ProgressArgs, SceneKindArg, SfmPresetArg, StageBars,
+    ChunkingArgs, DeviceArgs, ModelArgs, ProgressArgs, RegimeArg, SceneKindArg, SfmPresetArg,
+    StageBars,
 };
 use ggpt_eval::format_refinement_table as format_table;
 use ggpt_infer::demo::{DemoOptions, run_demo};
@@ -196,6 +197,10 @@ struct DemoArgs {
     /// Scene family.
     #[arg(long, value_enum, default_value_t)]
     kind: SceneKindArg,
+    /// Simulation regime: `benchmark` (matcher failure modes, structured feed-forward error,
+    /// the paper's ranges) or `easy` (the first, dense and clean regime; docs/synthetic.md).
+    #[arg(long, value_enum, default_value_t)]
+    regime: RegimeArg,
     /// Feed-forward width (multiple of 14).
     #[arg(long, default_value_t = 518)]
     width: usize,
@@ -414,6 +419,7 @@ fn run_demo_cmd(args: DemoArgs) -> Result<()> {
         views: args.views,
         seed: args.seed,
         kind: ggpt_synth::SceneKind::parse(args.kind.name())?,
+        regime: ggpt_synth::Regime::parse(args.regime.name())?,
         width: args.width,
         height: args.height,
         out: args.out.clone(),
@@ -435,8 +441,9 @@ fn run_demo_cmd(args: DemoArgs) -> Result<()> {
     let report = run_demo(&opts, &mut log, &mut |p| bars.report(p))?;
     bars.finish();
     println!(
-        "GGPT demo: synthetic {} scene, {} views at {}x{}, model {}",
+        "GGPT demo: synthetic {} scene ({} regime), {} views at {}x{}, model {}",
         args.kind.name(),
+        args.regime.name(),
         args.views,
         args.width,
         args.height,

@@ -16,6 +16,7 @@ pub mod error;
 pub mod feedforward;
 pub mod geometry;
 pub mod matches;
+pub mod regime;
 pub mod render;
 pub mod rng;
 pub mod stats;
@@ -30,7 +31,8 @@ use ggpt_core::{Cameras, Dims, GroundTruth, Progress, Scene};
 
 pub use error::SynthError;
 pub use feedforward::FfErrorModel;
-pub use matches::{MatcherModel, default_matchers};
+pub use matches::{FailureModes, MatcherModel, default_matchers, matchers_for};
+pub use regime::Regime;
 pub use world::SceneKind;
 
 /// Minimum / maximum number of views.
@@ -42,6 +44,9 @@ pub const PATCH: usize = 14;
 /// and close (1.6-2.3 m), so the same relative error would give much smaller absolute (cm)
 /// errors than in rooms; feed-forward models are also relatively less accurate on close-ups.
 pub const OBJECT_FF_ERROR_FACTOR: f64 = 1.5;
+/// The same multiplier in [`Regime::Benchmark`] [project, calibrated so that object scenes'
+/// feed-forward AUC@5 matches the rooms', `docs/synthetic.md`].
+pub const OBJECT_FF_ERROR_FACTOR_BENCHMARK: f64 = 1.8;
 
 /// Generator configuration.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -56,6 +61,11 @@ pub struct SynthConfig {
     pub height: usize,
     /// Seed of every random choice.
     pub seed: u64,
+    /// Simulation regime of the world (how many low-texture surfaces); [`SynthConfig::for_regime`]
+    /// also picks the regime's `ff_error` and `matchers`. A `synth.json` written before regimes
+    /// existed reads as [`Regime::Easy`].
+    #[serde(default = "Regime::before_regimes")]
+    pub regime: Regime,
     /// Generate dense matches.
     pub matches: bool,
     /// Room ceiling: `None` = random (rooms only).
@@ -94,23 +104,30 @@ impl PrincipalPoint {
 }
 
 impl Default for SynthConfig {
+    /// 8 views of a room at 518 x 392, seed 42, [`Regime::Benchmark`].
     fn default() -> Self {
+        Self::for_regime(Regime::default())
+    }
+}
+
+impl SynthConfig {
+    /// The default configuration of a regime: its world, feed-forward error model and matchers.
+    pub fn for_regime(regime: Regime) -> Self {
         SynthConfig {
             kind: SceneKind::Room,
             views: 8,
             width: 518,
             height: 392,
             seed: 42,
+            regime,
             matches: true,
             ceiling: None,
-            ff_error: FfErrorModel::default(),
-            matchers: default_matchers(),
+            ff_error: FfErrorModel::for_regime(regime),
+            matchers: matchers_for(regime),
             principal_point: PrincipalPoint::default(),
         }
     }
-}
 
-impl SynthConfig {
     /// Checks the ranges of every parameter.
     pub fn validate(&self) -> Result<(), SynthError> {
         if self.views < VIEWS_RANGE.0 || self.views > VIEWS_RANGE.1 {
@@ -192,8 +209,8 @@ pub fn generate_with_progress(
     let mut timings = Vec::new();
     let t0 = Instant::now();
     let world = match cfg.kind {
-        SceneKind::Room => world::build_room(cfg.seed, cfg.ceiling),
-        SceneKind::Object => world::build_object(cfg.seed),
+        SceneKind::Room => world::build_room(cfg.seed, cfg.ceiling, cfg.regime),
+        SceneKind::Object => world::build_object(cfg.seed, cfg.regime),
     };
     let (cam_from_world, focal) = world::place_cameras(&world, cfg.seed, cfg.views, cfg.width);
     let (cx, cy) = ggpt_core::camera::centred_principal_point(dims.h, dims.w);
@@ -213,7 +230,10 @@ pub fn generate_with_progress(
     progress(Progress::new(STAGE_FEED_FORWARD, 0, views));
     let model = match cfg.kind {
         SceneKind::Room => cfg.ff_error.clone(),
-        SceneKind::Object => cfg.ff_error.scaled(OBJECT_FF_ERROR_FACTOR),
+        SceneKind::Object => cfg.ff_error.scaled(match cfg.regime {
+            Regime::Easy => OBJECT_FF_ERROR_FACTOR,
+            Regime::Benchmark => OBJECT_FF_ERROR_FACTOR_BENCHMARK,
+        }),
     };
     let mut sim = feedforward::simulate_ff(&render, &gt_cams, &model, cfg.seed);
     let (ff_cx, ff_cy) = cfg.principal_point.of_image(dims.h, dims.w);
@@ -244,6 +264,11 @@ pub fn generate_with_progress(
         let total = (cfg.matchers.len() * dims.n * dims.n) as u64;
         progress(Progress::new(STAGE_MATCHES, 0, total));
         let ranks = matches::rank_scores(&images, dims, cfg.seed);
+        let maps = cfg
+            .matchers
+            .iter()
+            .any(matches::SceneMaps::needed_by)
+            .then(|| matches::SceneMaps::new(&render, &images, |q| world.texture_period_m(q)));
         let done = std::sync::atomic::AtomicU64::new(0);
         let tick = || {
             let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
@@ -257,6 +282,7 @@ pub fn generate_with_progress(
                 i,
                 cfg.seed,
                 Some(ranks.clone()),
+                maps.as_ref(),
                 &tick,
             ));
         }

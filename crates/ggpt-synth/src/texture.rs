@@ -282,6 +282,12 @@ pub enum TextureFamily {
     Floor,
     /// Walls: noise, stripes, gradients, blobs.
     Wall,
+    /// Low-texture paint / plaster: a faint gradient of one colour with a very weak grain, the
+    /// surfaces on which real dense matchers lose their certainty ([`crate::Regime::Benchmark`]).
+    Plain,
+    /// Weak texture (worn concrete, asphalt, short carpet): like [`TextureFamily::Plain`] with a
+    /// stronger grain ([`WEAK_GRAIN`]), on which matchers are partly certain and noisy.
+    Weak,
 }
 
 /// Draws a random material of the given family.
@@ -290,6 +296,8 @@ pub fn random_material(rng: &mut SynthRng, family: TextureFamily) -> Material {
         TextureFamily::Any => (uniform(rng, 0.0, 7.0) as u32).min(6),
         TextureFamily::Floor => [0u32, 3, 4, 5][(uniform(rng, 0.0, 4.0) as usize).min(3)],
         TextureFamily::Wall => [1u32, 2, 3, 6][(uniform(rng, 0.0, 4.0) as usize).min(3)],
+        TextureFamily::Plain => return plain_material(rng, PLAIN_GRAIN),
+        TextureFamily::Weak => return plain_material(rng, WEAK_GRAIN),
     };
     let texture = match kind {
         0 => Texture::Checker {
@@ -349,6 +357,43 @@ pub fn random_material(rng: &mut SynthRng, family: TextureFamily) -> Material {
         seed,
         grain: uniform(rng, 0.12, 0.3),
         grain_freq: uniform(rng, 15.0, 40.0),
+    }
+}
+
+/// Grain amplitude range of [`TextureFamily::Plain`] materials (textured ones: 0.12-0.3).
+pub const PLAIN_GRAIN: (f64, f64) = (0.004, 0.02);
+/// Grain amplitude range of [`TextureFamily::Weak`] materials.
+pub const WEAK_GRAIN: (f64, f64) = (0.07, 0.16);
+
+/// A low-texture material: one colour with a faint gradient over metres and a weak grain of
+/// amplitude in `grain`.
+fn plain_material(rng: &mut SynthRng, grain: (f64, f64)) -> Material {
+    let a = random_colour(rng, (0.0, 0.35), (0.45, 0.9));
+    let b = a * uniform(rng, 0.92, 1.08);
+    let texture = Texture::Gradient {
+        axis: unit_vector(rng),
+        length: uniform(rng, 2.0, 6.0),
+        a,
+        b: b.map(|c| c.clamp(0.0, 1.0)),
+    };
+    let seed = splitmix64((normal(rng).to_bits()) ^ 0x9A17);
+    Material {
+        texture,
+        seed,
+        grain: uniform(rng, grain.0, grain.1),
+        grain_freq: uniform(rng, 15.0, 40.0),
+    }
+}
+
+impl Material {
+    /// Spatial period (metres) of a repeating pattern (checker: two cells; stripes: the
+    /// period); `None` for aperiodic textures.
+    pub fn period_m(&self) -> Option<f64> {
+        match &self.texture {
+            Texture::Checker { cell, .. } => Some(2.0 * cell),
+            Texture::Stripes { period, .. } => Some(*period),
+            _ => None,
+        }
     }
 }
 

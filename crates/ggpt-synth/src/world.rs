@@ -6,6 +6,7 @@
 use nalgebra::{Matrix3, Matrix3x4, Point3, Rotation3, Vector3};
 
 use crate::geometry::{Hit, Primitive, Shape};
+use crate::regime::Regime;
 use crate::rng::{SynthRng, Tag, chance, normal, stream, uniform};
 use crate::texture::{Material, Rgb, TextureFamily, fbm, random_material};
 
@@ -70,6 +71,13 @@ pub struct World {
 }
 
 impl World {
+    /// Period (metres) of the repeating texture of primitive `prim` (checker, stripes), `None`
+    /// for aperiodic textures or an unknown index.
+    pub fn texture_period_m(&self, prim: usize) -> Option<f64> {
+        let m = self.prims.get(prim)?.material;
+        self.materials.get(m)?.period_m()
+    }
+
     /// Nearest hit of the ray `o + t d` (world frame) over all primitives: `(hit, primitive index)`.
     pub fn cast(&self, o: &Point3<f64>, d: &Vector3<f64>) -> Option<(Hit, usize)> {
         let mut best: Option<(Hit, usize)> = None;
@@ -166,9 +174,20 @@ fn place(
 
 /// Adds one random furniture-like item (or object) resting on the floor at `(x, z)` with the
 /// footprint radius `fr`; `scale` multiplies all sizes.
-fn add_item(rng: &mut SynthRng, w: &mut World, x: f64, z: f64, fr: f64, scale: f64, kinds: &[u32]) {
+#[allow(clippy::too_many_arguments)]
+fn add_item(
+    rng: &mut SynthRng,
+    w: &mut World,
+    x: f64,
+    z: f64,
+    fr: f64,
+    scale: f64,
+    kinds: &[u32],
+    plain: PlainOdds,
+) {
     let kind = kinds[(uniform(rng, 0.0, kinds.len() as f64) as usize).min(kinds.len() - 1)];
-    w.materials.push(random_material(rng, TextureFamily::Any));
+    let family = plain.family(rng, TextureFamily::Any, plain.items);
+    w.materials.push(random_material(rng, family));
     let m = w.materials.len() - 1;
     let yaw = if chance(rng, 0.3) {
         0.0
@@ -275,8 +294,61 @@ fn add_item(rng: &mut SynthRng, w: &mut World, x: f64, z: f64, fr: f64, scale: f
 /// Camera placement limits of a room (cameras stay inside this radius around the target).
 const ROOM_CAM_RADIUS: (f64, f64) = (3.0, 4.0);
 
-/// Builds a random indoor room. `ceiling`: `None` draws it at random (50 %).
-pub fn build_room(seed: u64, ceiling: Option<bool>) -> World {
+/// Probabilities that a surface gets a low-texture ([`TextureFamily::Plain`]) material
+/// [project, calibrated with `cargo bench -p ggpt-sfm --bench regime`, `docs/synthetic.md`]:
+/// real rooms have painted walls and ceilings and often plain floors, on which dense matchers
+/// lose their certainty (the paper's SfM covers 8.5-76 % of the pixels, supplementary Table 5).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlainOdds {
+    /// Room floors.
+    pub floor: f64,
+    /// The ground disc of object scenes: plain with this probability, else weakly textured
+    /// ([`TextureFamily::Weak`]); textured only in the easy regime.
+    pub ground: f64,
+    /// Room walls, the side panel.
+    pub wall: f64,
+    /// Room ceilings.
+    pub ceiling: f64,
+    /// Furniture and objects.
+    pub items: f64,
+}
+
+impl PlainOdds {
+    /// The odds of a regime: none in [`Regime::Easy`] (which then draws no extra random number,
+    /// so its scenes stay bit-identical to the first generator's).
+    pub fn of(regime: Regime) -> Self {
+        match regime {
+            Regime::Benchmark => PlainOdds {
+                floor: 0.5,
+                ground: 0.15,
+                wall: 0.85,
+                ceiling: 0.9,
+                items: 0.25,
+            },
+            Regime::Easy => PlainOdds {
+                floor: 0.0,
+                ground: 0.0,
+                wall: 0.0,
+                ceiling: 0.0,
+                items: 0.0,
+            },
+        }
+    }
+
+    /// `family`, or [`TextureFamily::Plain`] with probability `p` (no draw when `p == 0`).
+    fn family(self, rng: &mut SynthRng, family: TextureFamily, p: f64) -> TextureFamily {
+        if p > 0.0 && chance(rng, p) {
+            TextureFamily::Plain
+        } else {
+            family
+        }
+    }
+}
+
+/// Builds a random indoor room. `ceiling`: `None` draws it at random (50 %); `regime` decides
+/// how many surfaces are low-texture ([`PlainOdds`]).
+pub fn build_room(seed: u64, ceiling: Option<bool>, regime: Regime) -> World {
+    let plain = PlainOdds::of(regime);
     let mut rng = stream(seed, Tag::Layout, 0, 0);
     let ceiling = ceiling.unwrap_or_else(|| chance(&mut rng, 0.5));
     let hx = uniform(&mut rng, 3.8, 5.0);
@@ -304,7 +376,8 @@ pub fn build_room(seed: u64, ceiling: Option<bool>) -> World {
         ceiling,
     };
     let up = -Vector3::y();
-    let floor_m = push_mat(&mut w, &mut rng, TextureFamily::Floor);
+    let family = plain.family(&mut rng, TextureFamily::Floor, plain.floor);
+    let floor_m = push_mat(&mut w, &mut rng, family);
     w.prims.push(rect(
         Point3::new(0.0, 0.0, mid_z),
         Vector3::x(),
@@ -340,11 +413,13 @@ pub fn build_room(seed: u64, ceiling: Option<bool>) -> World {
         ),
     ];
     for (o, x, n, half_w) in walls {
-        let m = push_mat(&mut w, &mut rng, TextureFamily::Wall);
+        let family = plain.family(&mut rng, TextureFamily::Wall, plain.wall);
+        let m = push_mat(&mut w, &mut rng, family);
         w.prims.push(rect(o, x, n, half_w, height / 2.0 + 0.01, m));
     }
     if ceiling {
-        let m = push_mat(&mut w, &mut rng, TextureFamily::Wall);
+        let family = plain.family(&mut rng, TextureFamily::Wall, plain.ceiling);
+        let m = push_mat(&mut w, &mut rng, family);
         w.prims.push(rect(
             Point3::new(0.0, -height, mid_z),
             Vector3::x(),
@@ -371,7 +446,8 @@ pub fn build_room(seed: u64, ceiling: Option<bool>) -> World {
         Shape::Cuboid { half: shelf },
         m,
     ));
-    let m = push_mat(&mut w, &mut rng, TextureFamily::Wall);
+    let family = plain.family(&mut rng, TextureFamily::Wall, plain.wall);
+    let m = push_mat(&mut w, &mut rng, family);
     let panel_h = uniform(&mut rng, 0.4, 0.9);
     w.prims.push(rect(
         Point3::new(hx - 0.6, -panel_h / 2.0, mid_z + 1.0),
@@ -387,14 +463,16 @@ pub fn build_room(seed: u64, ceiling: Option<bool>) -> World {
     for _ in 0..count {
         let fr = uniform(&mut rng, 0.3, 0.65);
         if let Some((x, z)) = place(&mut rng, &mut taken, fr, 2.0, (0.0, 0.4)) {
-            add_item(&mut rng, &mut w, x, z, fr, 1.0, &[0, 0, 1, 2, 3, 4]);
+            add_item(&mut rng, &mut w, x, z, fr, 1.0, &[0, 0, 1, 2, 3, 4], plain);
         }
     }
     w
 }
 
-/// Builds a random object-centric scene: primitives clustered on a finite ground disc.
-pub fn build_object(seed: u64) -> World {
+/// Builds a random object-centric scene: primitives clustered on a finite ground disc;
+/// `regime` decides how many surfaces are low-texture ([`PlainOdds`]).
+pub fn build_object(seed: u64, regime: Regime) -> World {
+    let plain = PlainOdds::of(regime);
     let mut rng = stream(seed, Tag::Layout, 1, 0);
     let sun = Vector3::new(
         uniform(&mut rng, -0.6, 0.6),
@@ -411,7 +489,11 @@ pub fn build_object(seed: u64) -> World {
         sky_seed: rng_seed(&mut rng),
         ceiling: false,
     };
-    let m = push_mat(&mut w, &mut rng, TextureFamily::Floor);
+    let family = match regime {
+        Regime::Easy => TextureFamily::Floor,
+        Regime::Benchmark => plain.family(&mut rng, TextureFamily::Weak, plain.ground),
+    };
+    let m = push_mat(&mut w, &mut rng, family);
     let ground_r = uniform(&mut rng, 4.0, 6.0);
     w.prims.push(Primitive::with_axes(
         Point3::origin(),
@@ -425,7 +507,7 @@ pub fn build_object(seed: u64) -> World {
     for _ in 0..count {
         let fr = uniform(&mut rng, 0.12, 0.35);
         if let Some((x, z)) = place(&mut rng, &mut taken, fr, 0.8, (0.0, 0.0)) {
-            add_item(&mut rng, &mut w, x, z, fr, 0.55, &[0, 0, 2, 3, 4]);
+            add_item(&mut rng, &mut w, x, z, fr, 0.55, &[0, 0, 2, 3, 4], plain);
         }
     }
     w
@@ -533,7 +615,12 @@ mod tests {
     #[test]
     fn cameras_are_outside_solids() {
         for seed in 0..6 {
-            for w in [build_room(seed, None), build_object(seed)] {
+            for w in [
+                build_room(seed, None, Regime::Easy),
+                build_object(seed, Regime::Easy),
+                build_room(seed, None, Regime::Benchmark),
+                build_object(seed, Regime::Benchmark),
+            ] {
                 let (cams, f) = place_cameras(&w, seed, 8, 518);
                 assert!(f > 300.0 && f < 520.0);
                 for m in &cams {

@@ -3,17 +3,21 @@
 
 use ggpt_synth::matches::{GtMatch, gt_match};
 use ggpt_synth::stats::{cycle_error, match_stats, point_accuracy, spearman};
-use ggpt_synth::{SceneKind, SynthConfig, SynthOutput, generate};
+use ggpt_synth::{Regime, SceneKind, SynthConfig, SynthOutput, generate};
 use nalgebra::{Point3, Vector3};
 
 fn small(kind: SceneKind, seed: u64) -> SynthConfig {
+    small_in(Regime::Benchmark, kind, seed)
+}
+
+fn small_in(regime: Regime, kind: SceneKind, seed: u64) -> SynthConfig {
     SynthConfig {
         kind,
         views: 4,
         width: 56,
         height: 42,
         seed,
-        ..SynthConfig::default()
+        ..SynthConfig::for_regime(regime)
     }
 }
 
@@ -62,8 +66,8 @@ fn scene_validates_and_has_expected_shapes() {
         let s = &out.scene;
         assert!(s.validate().is_ok());
         assert_eq!(s.matches.len(), 2);
-        assert_eq!(s.matches[0].matcher, "synthetic-a");
-        assert_eq!(s.matches[1].matcher, "synthetic-b");
+        assert_eq!(s.matches[0].matcher, "roma-like");
+        assert_eq!(s.matches[1].matcher, "ufm-like");
         assert!(s.matches.iter().all(|m| m.pred_cycle_error.is_none()));
         let ff = s.ff.as_ref().expect("ff");
         assert!(ff.conf.iter().all(|c| *c >= 1.0));
@@ -160,7 +164,7 @@ fn noiseless_match_is_the_projection_of_the_gt_point() {
     let gt = s.gt.as_ref().expect("gt");
     let d = s.dims;
     // Rebuild the render to query the exact correspondences.
-    let render = rebuild_render(&out);
+    let render = rebuild_render(&out, Regime::Benchmark);
     let (mut checked, mut visible) = (0, 0);
     for src in 0..d.n {
         for tgt in 0..d.n {
@@ -204,7 +208,7 @@ fn noiseless_match_is_the_projection_of_the_gt_point() {
     );
 }
 
-fn rebuild_render(out: &SynthOutput) -> ggpt_synth::render::Render {
+fn rebuild_render(out: &SynthOutput, regime: Regime) -> ggpt_synth::render::Render {
     let cfg_kind = if out.scene.name.contains("room") {
         SceneKind::Room
     } else {
@@ -218,8 +222,8 @@ fn rebuild_render(out: &SynthOutput) -> ggpt_synth::render::Render {
         .and_then(|v| v.parse().ok())
         .expect("seed in name");
     let world = match cfg_kind {
-        SceneKind::Room => ggpt_synth::world::build_room(seed, None),
-        SceneKind::Object => ggpt_synth::world::build_object(seed),
+        SceneKind::Room => ggpt_synth::world::build_room(seed, None, regime),
+        SceneKind::Object => ggpt_synth::world::build_object(seed, regime),
     };
     let gt = out.scene.gt.as_ref().expect("gt");
     let r = ggpt_synth::render::render(&world, &gt.cameras, out.scene.dims);
@@ -233,11 +237,12 @@ fn rebuild_render(out: &SynthOutput) -> ggpt_synth::render::Render {
 
 #[test]
 fn matches_diagonal_outliers_and_occlusion() {
-    let out = gen_ok(&small(SceneKind::Room, 8));
+    // The easy regime's matchers (no failure modes): noise and outliers as configured.
+    let out = gen_ok(&small_in(Regime::Easy, SceneKind::Room, 8));
     let s = &out.scene;
     let d = s.dims;
     let gt = s.gt.as_ref().expect("gt");
-    let render = rebuild_render(&out);
+    let render = rebuild_render(&out, Regime::Easy);
     for (mi, ms) in s.matches.iter().enumerate() {
         let (mut vis, mut vis_far, mut occ, mut occ_low, mut sky, mut errs) =
             (0usize, 0usize, 0usize, 0usize, 0usize, Vec::new());
@@ -300,12 +305,12 @@ fn matches_diagonal_outliers_and_occlusion() {
 }
 
 fn ms_outlier_ratio(i: usize) -> f64 {
-    ggpt_synth::default_matchers()[i].outlier_ratio
+    ggpt_synth::matchers_for(Regime::Easy)[i].outlier_ratio
 }
 
 #[test]
 fn match_pass_rates_are_realistic() {
-    let out = gen_ok(&small(SceneKind::Object, 9));
+    let out = gen_ok(&small_in(Regime::Easy, SceneKind::Object, 9));
     for ms in &out.scene.matches {
         let st = match_stats(ms, out.scene.dims);
         assert!(
@@ -455,4 +460,153 @@ fn principal_point_convention_sets_only_the_ff_intrinsics() {
     assert_eq!(fv.points, fc.points);
     assert_eq!(fv.cameras.cam_from_world, fc.cameras.cam_from_world);
     assert_eq!(vggt.scene.gt, centre.scene.gt);
+}
+
+fn fnv1a(h: &mut u64, values: &[f32]) {
+    for v in values {
+        for b in v.to_le_bytes() {
+            *h ^= b as u64;
+            *h = h.wrapping_mul(0x100_0000_01b3);
+        }
+    }
+}
+
+/// `--regime easy` reproduces the first generator bit for bit: the hashes below were computed
+/// with the generator of commit 6eaee8a (before regimes existed) on the same configurations.
+#[test]
+fn easy_regime_reproduces_the_first_generator() {
+    for (kind, expected) in [
+        (SceneKind::Room, 0x1b49_c844_18a4_a459_u64),
+        (SceneKind::Object, 0x0d7c_23cf_df42_9a21),
+    ] {
+        let cfg = SynthConfig {
+            kind,
+            views: 3,
+            width: 112,
+            height: 84,
+            seed: 5,
+            ..SynthConfig::for_regime(Regime::Easy)
+        };
+        let out = gen_ok(&cfg);
+        let s = &out.scene;
+        let ff = s.ff.as_ref().expect("ff");
+        let mut h = 0xcbf2_9ce4_8422_2325_u64;
+        fnv1a(&mut h, &s.images);
+        fnv1a(&mut h, &ff.points);
+        fnv1a(&mut h, &ff.conf);
+        for m in &s.matches {
+            fnv1a(&mut h, &m.pred_matches);
+            fnv1a(&mut h, &m.pred_scores);
+        }
+        assert_eq!(
+            h, expected,
+            "{kind}: easy regime differs from the first generator"
+        );
+    }
+}
+
+/// The benchmark regime's failure modes, measured on the visible GT correspondences of a room:
+/// certainty collapses on low-texture surfaces and near occlusion boundaries, the UFM-like
+/// matcher stays denser there than the RoMa-like one, and repeated patterns give confident
+/// false matches about one period away.
+#[test]
+fn benchmark_matchers_fail_where_real_matchers_do() {
+    let cfg = SynthConfig {
+        kind: SceneKind::Room,
+        views: 3,
+        width: 182,
+        height: 140,
+        seed: 4,
+        ..SynthConfig::for_regime(Regime::Benchmark)
+    };
+    let out = gen_ok(&cfg);
+    let s = &out.scene;
+    let d = s.dims;
+    let gt = s.gt.as_ref().expect("gt");
+    let render = rebuild_render(&out, Regime::Benchmark);
+    let world = ggpt_synth::world::build_room(cfg.seed, None, Regime::Benchmark);
+    let maps =
+        ggpt_synth::matches::SceneMaps::new(&render, &s.images, |q| world.texture_period_m(q));
+    let f = &cfg.matchers[0].failures;
+    // (plain: visible, passing the DLT score), (textured: ...), (edge band: score sum, n),
+    // (away from edges: score sum, n), (periodic: visible, far and confident)
+    let mut rates = Vec::new();
+    for ms in &s.matches {
+        let (mut plain, mut plain_pass, mut tex, mut tex_pass) = (0usize, 0usize, 0usize, 0usize);
+        let (mut edge_sum, mut edge_n, mut far_sum, mut far_n) = (0.0, 0usize, 0.0, 0usize);
+        let (mut periodic, mut jumped) = (0usize, 0usize);
+        for src in 0..d.n {
+            for tgt in 0..d.n {
+                if src == tgt {
+                    continue;
+                }
+                let base = (tgt * d.n + src) * d.hw();
+                for k in 0..d.hw() {
+                    let GtMatch::Visible { loc, .. } = gt_match(&render, &gt.cameras, src, tgt, k)
+                    else {
+                        continue;
+                    };
+                    let p = src * d.hw() + k;
+                    let score = ms.pred_scores[base + k] as f64;
+                    let m = (
+                        ms.pred_matches[2 * (base + k)] as f64,
+                        ms.pred_matches[2 * (base + k) + 1] as f64,
+                    );
+                    let err = (m.0 - loc.x).hypot(m.1 - loc.y);
+                    let t = maps.texture[p] as f64;
+                    if t < 0.3 * f.texture_ref {
+                        plain += 1;
+                        plain_pass += usize::from(score > 0.1 && err < 4.0);
+                    } else if t > f.texture_ref {
+                        tex += 1;
+                        tex_pass += usize::from(score > 0.1 && err < 4.0);
+                    }
+                    // occlusion band vs away from it, on textured surfaces only
+                    let textured = t > f.texture_ref;
+                    if textured && maps.edge_distance[p] < 2.0 {
+                        edge_sum += score;
+                        edge_n += 1;
+                    } else if textured && maps.edge_distance[p] > 12.0 {
+                        far_sum += score;
+                        far_n += 1;
+                    }
+                    if maps.period_m[p] > 0.0 {
+                        periodic += 1;
+                        jumped += usize::from(score > 0.6 && err > 4.0);
+                    }
+                }
+            }
+        }
+        assert!(
+            plain > 1000 && tex > 1000,
+            "{}: plain {plain}, textured {tex}",
+            ms.matcher
+        );
+        let (pr, tr) = (
+            plain_pass as f64 / plain as f64,
+            tex_pass as f64 / tex as f64,
+        );
+        assert!(
+            tr > 0.4 && pr < 0.5 * tr,
+            "{}: plain {pr}, textured {tr}",
+            ms.matcher
+        );
+        let (edge_mean, far_mean) = (edge_sum / edge_n as f64, far_sum / far_n as f64);
+        assert!(
+            edge_mean < far_mean - 0.1,
+            "{}: edge {edge_mean}, far {far_mean}",
+            ms.matcher
+        );
+        if periodic > 2000 {
+            let r = jumped as f64 / periodic as f64;
+            assert!(
+                r > 0.02 && r < 0.5,
+                "{}: repeated-pattern jumps {r}",
+                ms.matcher
+            );
+        }
+        rates.push(pr);
+    }
+    // The UFM-like matcher is denser on weak texture than the RoMa-like one.
+    assert!(rates[1] > rates[0], "plain-surface pass rates {rates:?}");
 }

@@ -6,7 +6,9 @@ use std::path::PathBuf;
 
 use anyhow::{Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use ggpt_cli::{ChunkingArgs, DeviceArg, DeviceArgs, ModelArgs, ProgressArgs, SceneKindArg};
+use ggpt_cli::{
+    ChunkingArgs, DeviceArg, DeviceArgs, ModelArgs, ProgressArgs, RegimeArg, SceneKindArg,
+};
 use ggpt_train::prepare::SynthSpec;
 use ggpt_train::trainer::{LrSchedule, Recompute};
 use serde::Serialize;
@@ -68,6 +70,11 @@ pub struct SynthArgs {
     /// Synthetic scene kinds, alternated by seed.
     #[arg(long, value_enum, value_delimiter = ',', default_value = "room,object")]
     pub kinds: Vec<SceneKindArg>,
+    /// Simulation regime of the synthetic scenes: `benchmark` (matcher failure modes and
+    /// structured feed-forward error, the paper's ranges) or `easy` (the first, dense and clean
+    /// regime; docs/synthetic.md).
+    #[arg(long, value_enum, default_value_t)]
+    pub regime: RegimeArg,
 }
 
 impl SynthArgs {
@@ -90,6 +97,7 @@ impl SynthArgs {
             width: self.width,
             height: self.height,
             seed: self.first_seed + i as u64,
+            regime: ggpt_synth::Regime::parse(self.regime.name())?,
         })
     }
 }
@@ -490,6 +498,7 @@ mod tests {
             width: 56,
             height: 42,
             kinds: vec![SceneKindArg::Room, SceneKindArg::Object],
+            regime: RegimeArg::Benchmark,
         };
         let k: Vec<(ggpt_synth::SceneKind, usize, u64)> = (0..4)
             .map(|i| s.spec(i).map(|p| (p.kind, p.views, p.seed)).unwrap())

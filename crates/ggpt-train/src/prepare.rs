@@ -184,6 +184,9 @@ pub struct SynthSpec {
     pub height: usize,
     /// Generator seed.
     pub seed: u64,
+    /// Simulation regime; chunk sets written before regimes existed hold easy-regime scenes.
+    #[serde(default = "ggpt_synth::Regime::before_regimes")]
+    pub regime: ggpt_synth::Regime,
 }
 
 /// Generates a synthetic scene and runs the SfM stage (benchmark preset, seed 42) on it.
@@ -195,7 +198,7 @@ pub fn synthetic_scene(spec: &SynthSpec) -> Result<(Scene, SfmResult)> {
         width: spec.width,
         height: spec.height,
         seed: spec.seed,
-        ..ggpt_synth::SynthConfig::default()
+        ..ggpt_synth::SynthConfig::for_regime(spec.regime)
     };
     let out = ggpt_synth::generate(&cfg)?;
     let mut scene = out.scene;
@@ -246,6 +249,7 @@ mod tests {
             width: 84,
             height: 56,
             seed: 3,
+            regime: ggpt_synth::Regime::Benchmark,
         };
         let (scene, sfm) = synthetic_scene(&spec).unwrap();
         let params = PrepareParams {

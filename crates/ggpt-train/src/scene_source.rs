@@ -112,6 +112,7 @@ mod tests {
             width: 56,
             height: 42,
             seed: 7,
+            regime: ggpt_synth::Regime::Benchmark,
         }
     }
 

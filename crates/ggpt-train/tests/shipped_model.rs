@@ -53,6 +53,7 @@ fn shipped_model_loads_strictly_and_refines_fresh_chunks() {
         width: 518,
         height: 392,
         seed: FRESH_SEED,
+        regime: ggpt_synth::Regime::Benchmark,
     };
     let (scene, sfm) = synthetic_scene(&synth).unwrap();
     let params = PrepareParams {

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use ggpt_cli::SyncStageBars;
 use ggpt_core::io::scene_dir::{read_scene, write_scene};
-use ggpt_synth::{SceneKind, SynthConfig, generate_with_progress};
+use ggpt_synth::{Regime, SceneKind, SynthConfig, generate_with_progress};
 
 use ggpt_core::io::atomic::write_json_atomic;
 use ggpt_eval::report::{CameraSource, EvalReport, PredSource, evaluate_scene, format_table};
@@ -28,6 +28,8 @@ pub struct DemoOptions {
     pub with_matches: bool,
     /// Scene family.
     pub kind: SceneKind,
+    /// Simulation regime (`docs/synthetic.md`).
+    pub regime: Regime,
 }
 
 /// What the demo produced.
@@ -48,7 +50,7 @@ pub fn run_demo(opts: &DemoOptions) -> Result<DemoOutput> {
         height: opts.height,
         seed: opts.seed,
         matches: opts.with_matches,
-        ..SynthConfig::default()
+        ..SynthConfig::for_regime(opts.regime)
     };
     let bars = SyncStageBars::new();
     let synth = generate_with_progress(&cfg, &|p| bars.report(p))

@@ -5,7 +5,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::Result;
-use ggpt_cli::{ChunkingArgs, DeviceArgs, ModelArgs, ModelPreset, SceneKindArg};
+use ggpt_cli::{ChunkingArgs, DeviceArgs, ModelArgs, ModelPreset, RegimeArg, SceneKindArg};
 
 use crate::cli::{LrScheduleArg, PrepareArgs, SynthArgs, TrainArgs};
 
@@ -26,6 +26,7 @@ pub fn run(out: &Path) -> Result<()> {
             width: 98,
             height: 70,
             kinds: vec![SceneKindArg::Room, SceneKindArg::Object],
+            regime: RegimeArg::default(),
         },
         official: Vec::new(),
         val_fraction: 0.0,

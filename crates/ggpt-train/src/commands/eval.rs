@@ -130,7 +130,7 @@ pub fn run(a: &EvalArgs) -> Result<()> {
     if let Some(out) = &a.out {
         let v = serde_json::json!({"summary": summary, "scenes": results, "model": path, "data": a.data,
             "synthetic": a.synthetic_scenes.map(|n| serde_json::json!({"scenes": n, "first_seed": a.synth.first_seed, "views": a.synth.views,
-                "width": a.synth.width, "height": a.synth.height, "kinds": a.synth.kinds})),
+                "width": a.synth.width, "height": a.synth.height, "kinds": a.synth.kinds, "regime": a.synth.regime})),
             "chunking": chunking});
         ggpt_core::io::atomic::write_json_atomic(out, &v)?;
     }

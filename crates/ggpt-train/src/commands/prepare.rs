@@ -35,7 +35,7 @@ pub fn run(a: &PrepareArgs) -> Result<()> {
         "tool": format!("ggpt-train {}", env!("CARGO_PKG_VERSION")),
         "params": params,
         "synthetic": {"train": a.synthetic_train, "val": a.synthetic_val, "first_seed": a.synth.first_seed, "views": a.synth.views,
-                      "width": a.synth.width, "height": a.synth.height, "kinds": a.synth.kinds},
+                      "width": a.synth.width, "height": a.synth.height, "kinds": a.synth.kinds, "regime": a.synth.regime},
         "official": a.official,
     });
     let mut w = ChunkSetWriter::new(&a.out, a.shard_chunks, provenance)?;
