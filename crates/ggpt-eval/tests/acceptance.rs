@@ -1,4 +1,4 @@
-//! Acceptance test of issue 2 (evaluation): `ggpt-synth --seed 1 --views 8 --out S` then
+//! Acceptance test of issue 2 (evaluation): `ggpt-synth --seed 1 --views 8 --regime easy --out S` then
 //! `ggpt-eval` on S reports a feed-forward AUC@5/10 clearly below 100 and 100 for the GT
 //! evaluated against itself. Both real binaries run as subprocesses at the default resolution
 //! (518x392, with the default dense matches); `docs/synthetic.md` documents ff AUC@5 / @10 =
@@ -84,7 +84,7 @@ fn synth_seed1_ff_below_100_and_gt_exactly_100() {
     run_ok(
         "ggpt-synth",
         Command::new(synth_bin())
-            .args(["--seed", "1", "--views", "8", "--out"])
+            .args(["--seed", "1", "--views", "8", "--regime", "easy", "--out"])
             .arg(&scene),
     );
     assert!(

@@ -22,7 +22,7 @@ use ggpt_core::metrics::{EVAL_ALIGN_MAX_ERROR, PointMetrics, point_metrics};
 use ggpt_core::{MatchSet, Scene, SfmResult};
 use ggpt_sfm::masks::Preset;
 use ggpt_sfm::pipeline::{SfmConfig, run_sfm};
-use ggpt_synth::{SceneKind, SynthConfig};
+use ggpt_synth::{Regime, SceneKind, SynthConfig};
 use rand::SeedableRng;
 use rand_pcg::Pcg64;
 
@@ -48,6 +48,9 @@ struct Args {
     /// Scene kinds (room, object), cycled per scene.
     #[arg(long, value_delimiter = ',', default_value = "room,object")]
     kinds: Vec<String>,
+    /// Simulation regime (`benchmark`, `easy`).
+    #[arg(long, default_value = "benchmark")]
+    regime: String,
     /// Also run the SfM with each matcher alone and print its coverage.
     #[arg(long)]
     per_matcher: bool,
@@ -141,7 +144,7 @@ fn run_scene(args: &Args, kind: SceneKind, views: usize, seed: u64) -> Result<Ro
         width: args.width,
         height: args.height,
         seed,
-        ..SynthConfig::default()
+        ..SynthConfig::for_regime(Regime::parse(&args.regime)?)
     };
     let t0 = Instant::now();
     let scene = ggpt_synth::generate(&cfg).context("generate")?.scene;
@@ -230,7 +233,8 @@ fn main() -> Result<()> {
         .collect::<Result<Vec<_>, _>>()?;
 
     println!(
-        "Synthetic regime through the SfM stage (benchmark preset), {}x{} ff pixels, {} rayon threads, eval seed {}",
+        "Synthetic {} regime through the SfM stage (benchmark preset), {}x{} ff pixels, {} rayon threads, eval seed {}",
+        args.regime,
         args.width,
         args.height,
         rayon::current_num_threads(),
@@ -240,7 +244,7 @@ fn main() -> Result<()> {
 
     // One coverage column per matcher of the synthetic scenes (the `MatchSet` names).
     let matcher_names: Vec<String> = if args.per_matcher {
-        SynthConfig::default()
+        SynthConfig::for_regime(Regime::parse(&args.regime)?)
             .matchers
             .iter()
             .map(|m| m.name.clone())

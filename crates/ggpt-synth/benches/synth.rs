@@ -1,6 +1,6 @@
 //! Release-mode timing and quality table of the synthetic generator.
 //!
-//! Run: `cargo bench -p ggpt-synth --bench synth -- [--views 8] [--seeds 3]`.
+//! Run: `cargo bench -p ggpt-synth --bench synth -- [--views 8] [--seeds 3] [--regime easy]`.
 //! Prints one row per (kind, seed): stage timings (s), the valid-GT fraction, the feed-forward
 //! point accuracy (AUC@5/10 cm after the official robust Sim(3) with retries, and after a
 //! trimmed least-squares Sim(3)), and the match pass rates of every matcher.
@@ -11,7 +11,7 @@ use nalgebra::Point3;
 use rand::SeedableRng;
 
 use ggpt_synth::stats::{match_stats, point_accuracy};
-use ggpt_synth::{SceneKind, SynthConfig, generate};
+use ggpt_synth::{Regime, SceneKind, SynthConfig, generate};
 
 /// Timing / quality table of the synthetic generator.
 #[derive(Debug, Parser)]
@@ -35,6 +35,9 @@ struct Args {
     /// Timings only: skip every quality statistic (for CPU-time measurements with `time`).
     #[arg(long)]
     timings_only: bool,
+    /// Simulation regime (`benchmark`, `easy`).
+    #[arg(long, default_value = "benchmark")]
+    regime: String,
     /// Scene kinds to run (comma separated: room,object).
     #[arg(long, default_value = "room,object")]
     kinds: String,
@@ -91,7 +94,7 @@ fn main() -> Result<()> {
                 width: args.width,
                 height: args.height,
                 seed,
-                ..SynthConfig::default()
+                ..SynthConfig::for_regime(Regime::parse(&args.regime)?)
             };
             let out = generate(&cfg)?;
             let t = |name: &str| {

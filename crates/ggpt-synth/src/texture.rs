@@ -363,7 +363,7 @@ pub fn random_material(rng: &mut SynthRng, family: TextureFamily) -> Material {
 /// Grain amplitude range of [`TextureFamily::Plain`] materials (textured ones: 0.12-0.3).
 pub const PLAIN_GRAIN: (f64, f64) = (0.004, 0.02);
 /// Grain amplitude range of [`TextureFamily::Weak`] materials.
-pub const WEAK_GRAIN: (f64, f64) = (0.07, 0.16);
+pub const WEAK_GRAIN: (f64, f64) = (0.1, 0.22);
 
 /// A low-texture material: one colour with a faint gradient over metres and a weak grain of
 /// amplitude in `grain`.

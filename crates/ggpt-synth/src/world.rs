@@ -320,7 +320,7 @@ impl PlainOdds {
         match regime {
             Regime::Benchmark => PlainOdds {
                 floor: 0.5,
-                ground: 0.15,
+                ground: 0.1,
                 wall: 0.85,
                 ceiling: 0.9,
                 items: 0.25,

@@ -610,3 +610,58 @@ fn benchmark_matchers_fail_where_real_matchers_do() {
     // The UFM-like matcher is denser on weak texture than the RoMa-like one.
     assert!(rates[1] > rates[0], "plain-surface pass rates {rates:?}");
 }
+
+/// Median absolute difference of horizontally adjacent valid pixels' relative depth errors over
+/// their median (medians: robust to the few flying pixels and gross errors): ~1 for per-pixel
+/// noise, small for a smooth, structured error.
+fn roughness(out: &SynthOutput) -> f64 {
+    let d = out.scene.dims;
+    let mask = &out.scene.gt.as_ref().expect("gt").mask;
+    let e = &out.ff_rel_depth_error;
+    let (mut diff, mut err) = (Vec::new(), Vec::new());
+    for v in 0..d.n {
+        for y in 0..d.h {
+            for x in 0..d.w - 1 {
+                let (p, q) = (d.index(v, y, x), d.index(v, y, x + 1));
+                if mask[p] && mask[q] {
+                    diff.push((e[p] - e[q]).abs() as f64);
+                    err.push(e[p] as f64);
+                }
+            }
+        }
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    assert!(!err.is_empty());
+    median(&mut diff) / median(&mut err)
+}
+
+/// The benchmark regime's feed-forward error is low-frequency and structured (as VGGT's), the
+/// easy regime's is dominated by per-pixel noise.
+#[test]
+fn benchmark_feedforward_error_is_smooth_and_structured() {
+    for kind in [SceneKind::Room, SceneKind::Object] {
+        let at = |regime| {
+            gen_ok(&SynthConfig {
+                kind,
+                views: 3,
+                width: 112,
+                height: 84,
+                seed: 21,
+                matches: false,
+                ..SynthConfig::for_regime(regime)
+            })
+        };
+        let (bench, easy) = (
+            roughness(&at(Regime::Benchmark)),
+            roughness(&at(Regime::Easy)),
+        );
+        eprintln!("{kind}: roughness benchmark {bench:.3}, easy {easy:.3}");
+        assert!(
+            bench < 0.35 && easy > 2.0 * bench,
+            "{kind}: roughness benchmark {bench}, easy {easy}"
+        );
+    }
+}

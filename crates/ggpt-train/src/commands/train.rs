@@ -65,7 +65,16 @@ pub fn run(a: &TrainArgs) -> Result<()> {
         tracing::info!("resumed from {} at step {}", dir.display(), st.step);
         (m, o, st.step, opts)
     } else {
-        let mut cfg = super::model_config(&a.model, Some("small"))?;
+        // Fine-tuning: `--weights` may be a model folder (its weights file), and without
+        // `--model-config` / `--preset` the configuration next to the weights is the network's.
+        let init = a
+            .init_weights()
+            .map(|w| super::resolve_init_weights(w, &a.model))
+            .transpose()?;
+        let mut cfg = match &init {
+            Some((_, Some(cfg))) => cfg.clone(),
+            _ => super::model_config(&a.model, Some("small"))?,
+        };
         if let Some(dp) = a.drop_path {
             cfg.drop_path = dp;
         }
@@ -77,7 +86,7 @@ pub fn run(a: &TrainArgs) -> Result<()> {
         }
         device.seed(a.seed);
         let mut m = Ggpt::new(&cfg, &device);
-        if let Some(init) = a.init_weights() {
+        if let Some((init, _)) = &init {
             m = ggpt_model::weights::load_checkpoint(m, init)
                 .with_context(|| format!("--weights {}", init.display()))?;
         }
