@@ -63,18 +63,10 @@ impl Canvas {
         let Ok(font) = FontRef::try_from_slice(FONT_TTF) else {
             return 0.0;
         };
-        let scaled = font.as_scaled(PxScale::from(px));
-        let baseline = y + scaled.ascent();
-        let mut pen = x;
-        let mut previous = None;
-        for ch in text.chars() {
-            let id = scaled.glyph_id(ch);
-            if let Some(p) = previous {
-                pen += scaled.kern(p, id);
-            }
-            let glyph = id.with_scale_and_position(px, point(pen, baseline));
-            pen += scaled.h_advance(id);
-            previous = Some(id);
+        let baseline = y + font.as_scaled(PxScale::from(px)).ascent();
+        let (glyphs, width) = layout(&font, px, text);
+        for (id, pen) in glyphs {
+            let glyph = id.with_scale_and_position(px, point(x + pen, baseline));
             let Some(outline) = font.outline_glyph(glyph) else {
                 continue;
             };
@@ -96,27 +88,35 @@ impl Canvas {
                 }
             });
         }
-        pen - x
+        width
     }
 
     /// The advance width of `text` at `px` (what [`Self::text`] returns), for centring.
     pub fn text_width(px: f32, text: &str) -> f32 {
-        let Ok(font) = FontRef::try_from_slice(FONT_TTF) else {
-            return 0.0;
-        };
-        let scaled = font.as_scaled(PxScale::from(px));
-        let mut width = 0.0;
-        let mut previous = None;
-        for ch in text.chars() {
-            let id = scaled.glyph_id(ch);
-            if let Some(p) = previous {
-                width += scaled.kern(p, id);
-            }
-            width += scaled.h_advance(id);
-            previous = Some(id);
+        match FontRef::try_from_slice(FONT_TTF) {
+            Ok(font) => layout(&font, px, text).1,
+            Err(_) => 0.0,
         }
-        width
     }
+}
+
+/// Horizontal layout of `text` at `px`: each glyph with its pen offset from the start (kerning
+/// included), and the total advance width.
+fn layout(font: &FontRef<'_>, px: f32, text: &str) -> (Vec<(ab_glyph::GlyphId, f32)>, f32) {
+    let scaled = font.as_scaled(PxScale::from(px));
+    let mut pen = 0.0;
+    let mut previous = None;
+    let mut glyphs = Vec::with_capacity(text.len());
+    for ch in text.chars() {
+        let id = scaled.glyph_id(ch);
+        if let Some(p) = previous {
+            pen += scaled.kern(p, id);
+        }
+        glyphs.push((id, pen));
+        pen += scaled.h_advance(id);
+        previous = Some(id);
+    }
+    (glyphs, pen)
 }
 
 #[cfg(test)]
