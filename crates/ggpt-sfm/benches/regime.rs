@@ -180,15 +180,16 @@ fn run_scene(args: &Args, kind: SceneKind, views: usize, seed: u64) -> Result<Ro
         Vec::new()
     };
 
-    // All-pixel SfM AUC = covered-pixel AUC × coverage (uncovered pixels count as failures):
-    // `ggpt_eval::AllPixelMetrics::from_covered` (crates/ggpt-eval/src/refinement.rs).
+    // uncovered pixels count as misses, as in every evaluation.json
+    let all = ggpt_eval::AllPixelMetrics::from_covered(&sfm_m)
+        .ok_or_else(|| anyhow!("SfM covers no GT pixel"))?;
     Ok(Row {
         ff_auc5: ff_m.auc_5,
         ff_auc10: ff_m.auc_10,
         coverage_pct: 100.0 * cov,
         sfm_auc5_covered: sfm_m.auc_5,
-        sfm_all_auc5: sfm_m.auc_5 * cov,
-        sfm_all_auc10: sfm_m.auc_10 * cov,
+        sfm_all_auc5: all.auc_5,
+        sfm_all_auc10: all.auc_10,
         per_matcher,
         synth_s,
         sfm_s,

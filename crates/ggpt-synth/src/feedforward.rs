@@ -219,7 +219,12 @@ pub fn simulate_ff(
             } else {
                 0.0
             };
-            let median_depth = median_valid_depth(render, base, hw);
+            // (only the drift needs it: no per-view sort in the easy regime)
+            let median_depth = if slope != 0.0 {
+                median_valid_depth(render, base, hw)
+            } else {
+                1.0
+            };
             let (mut cen, mut nc) = (Vector3::zeros(), 0usize);
             for p in base..base + hw {
                 if render.valid(p) {
