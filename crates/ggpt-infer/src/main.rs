@@ -325,7 +325,7 @@ fn print_report(r: &RunReport) {
     if r.evaluation.is_some() {
         println!("  {}", r.out_dir.join("evaluation.json").display());
         println!(
-            "  {}/view_*.png (image | feed-forward error | refined error)",
+            "  {}/view_*.png (image | feed-forward error | SfM points' error | refined error)",
             r.out_dir.join("error_maps").display()
         );
     }
