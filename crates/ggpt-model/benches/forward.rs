@@ -13,9 +13,9 @@
 use std::time::Instant;
 
 use clap::Parser;
-use ggpt_model::bench::{peak_rss_mib, pixels_for_tokens, surface_chunk};
+use ggpt_model::bench::{peak_rss_mib, pixels_for_tokens, print_device_counts, surface_chunk};
 use ggpt_model::device::device_from_name;
-use ggpt_model::device_stats::{DeviceCounts, KernelTiming, observe};
+use ggpt_model::device_stats::{KernelTiming, observe};
 use ggpt_model::infer::plan_config;
 use ggpt_model::plan::plan_batch;
 use ggpt_model::{Ggpt, GgptConfig, PreparedBatch};
@@ -156,36 +156,8 @@ fn main() {
                 peak_rss_mib()
             );
             if count || kernel_times {
-                print_counts(&counts, kernel_times);
+                print_device_counts(&counts, kernel_times);
             }
-        }
-    }
-}
-
-/// One line of counts to stdout, the launches (and times) per kernel to stderr.
-fn print_counts(c: &DeviceCounts, timed: bool) {
-    let launches = if c.launches_observed {
-        c.launches.to_string()
-    } else {
-        "not observed (no CubeCL backend compiled)".to_string()
-    };
-    println!(
-        "counts: {launches} kernel launches, {} host readbacks, {} distinct kernels",
-        c.readbacks,
-        c.kernels.len()
-    );
-    let mut kernels = c.kernels.clone();
-    if timed {
-        kernels.sort_by(|a, b| b.seconds.total_cmp(&a.seconds));
-    }
-    for k in kernels.iter().take(40) {
-        if timed {
-            eprintln!(
-                "kernel {:>6} x {:>9.3} s  {}",
-                k.launches, k.seconds, k.name
-            );
-        } else {
-            eprintln!("kernel {:>6} x  {}", k.launches, k.name);
         }
     }
 }

@@ -1,7 +1,8 @@
 //! Inputs and measurements shared by the bench targets (`forward`, `plan`, `ggpt-train`'s
-//! `train`): a deterministic surface-like chunk shaped like the fixture's clouds, and the
-//! process's peak resident set size.
+//! `train`): a deterministic surface-like chunk shaped like the fixture's clouds, the
+//! process's peak resident set size, and the printout of a pass's device counts.
 
+use crate::device_stats::DeviceCounts;
 use crate::plan::ChunkInput;
 
 /// Fraction of pixels with a DLT point.
@@ -66,6 +67,36 @@ pub fn reset_peak_rss() -> bool {
 /// [`GUIDANCE_FRACTION`] guidance.
 pub fn pixels_for_tokens(tokens: usize) -> usize {
     ((tokens as f32) / (1.0 + GUIDANCE_FRACTION)).round() as usize
+}
+
+/// Prints what [`crate::device_stats::observe`] counted: one `counts:` line to stdout (launches,
+/// readbacks, distinct kernels) and the 40 most launched (or, with `timed`, the 40 slowest)
+/// kernels to stderr.
+pub fn print_device_counts(c: &DeviceCounts, timed: bool) {
+    let launches = if c.launches_observed {
+        c.launches.to_string()
+    } else {
+        "not observed (no CubeCL backend compiled)".to_string()
+    };
+    println!(
+        "counts: {launches} kernel launches, {} host readbacks, {} distinct kernels",
+        c.readbacks,
+        c.kernels.len()
+    );
+    let mut kernels = c.kernels.clone();
+    if timed {
+        kernels.sort_by(|a, b| b.seconds.total_cmp(&a.seconds));
+    }
+    for k in kernels.iter().take(40) {
+        if timed {
+            eprintln!(
+                "kernel {:>6} x {:>9.3} s  {}",
+                k.launches, k.seconds, k.name
+            );
+        } else {
+            eprintln!("kernel {:>6} x  {}", k.launches, k.name);
+        }
+    }
 }
 
 #[cfg(test)]

@@ -7,14 +7,19 @@
 //! cargo bench -p ggpt-train --bench train -- --config small --tokens 20000 --batch 4
 //! ```
 //!
-//! Peak RSS is the process's `VmHWM`, reset before each row (Linux).
+//! Peak RSS is the process's `VmHWM`, reset before each row (Linux). With `--count` (or
+//! `--kernel-times`, which also times every kernel and so serialises them) each timed step's
+//! kernel launches and host readbacks are printed after the row (CubeCL devices: wgpu, cuda).
 
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use burn::module::Module;
 use clap::Parser;
-use ggpt_model::bench::{peak_rss_mib, pixels_for_tokens, reset_peak_rss, surface_chunk};
+use ggpt_model::bench::{
+    peak_rss_mib, pixels_for_tokens, print_device_counts, reset_peak_rss, surface_chunk,
+};
+use ggpt_model::device_stats::{DeviceCounts, KernelTiming, observe};
 use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_train::chunkset::TrainChunk;
 use ggpt_train::trainer::{Recompute, StepPlan, adam, parallel_step};
@@ -57,6 +62,14 @@ struct Args {
     /// core), to stderr. Eager CPU backends only.
     #[arg(long)]
     profile: bool,
+    /// Count each timed step's kernel launches and host readbacks
+    /// (`ggpt_model::device_stats`); the launches per kernel go to stderr.
+    #[arg(long)]
+    count: bool,
+    /// As `--count`, and time every kernel (serialised: the step's wall time grows); the
+    /// slowest kernels go to stderr.
+    #[arg(long)]
+    kernel_times: bool,
     /// Passed by `cargo bench`; ignored.
     #[arg(long, hide = true)]
     bench: bool,
@@ -110,6 +123,11 @@ fn main() -> Result<()> {
     } else {
         names[0].clone()
     };
+    let timing = if args.kernel_times {
+        KernelTiming::Resolved
+    } else {
+        KernelTiming::CountOnly
+    };
     let modes: Vec<Recompute> = args
         .recompute
         .iter()
@@ -138,6 +156,7 @@ fn main() -> Result<()> {
                     let params = ggpt_model::weights::num_trainable_params(&model);
                     let mut optim = adam();
                     let mut secs = Vec::with_capacity(args.steps);
+                    let mut step_counts: Vec<DeviceCounts> = Vec::with_capacity(args.steps);
                     for s in 0..=args.steps {
                         // the warm-up step is not profiled
                         ggpt_model::profile::set_enabled(args.profile && s > 0);
@@ -148,16 +167,19 @@ fn main() -> Result<()> {
                             drop_path_seed: Some(s as u64),
                             recompute: mode,
                         };
-                        let (m, loss) =
+                        let (step, counts) = observe(timing, || {
                             parallel_step(model, &mut optim, &cfg, &refs, 1e-4, None, &plan)
-                                .with_context(|| format!("{name}: step {s}"))?;
+                        });
+                        let (m, loss) = step.with_context(|| format!("{name}: step {s}"))?;
                         model = m;
                         if s > 0 {
                             secs.push(t.elapsed().as_secs_f64());
+                            step_counts.push(counts);
                         }
                         tracing::debug!("step {s}: loss {:.4}", loss.total);
                     }
                     ggpt_model::profile::set_enabled(false);
+                    let counted = args.count || args.kernel_times;
                     if args.profile {
                         for e in ggpt_model::profile::take_report() {
                             eprintln!(
@@ -182,6 +204,11 @@ fn main() -> Result<()> {
                         n_tokens as f64 / mean,
                         ((peak - 1024.0) * 1024.0 / n_tokens as f64).max(0.0)
                     );
+                    if counted {
+                        for c in &step_counts {
+                            print_device_counts(c, args.kernel_times);
+                        }
+                    }
                 }
             }
         }
