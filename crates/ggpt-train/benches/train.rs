@@ -19,7 +19,7 @@ use clap::Parser;
 use ggpt_model::bench::{
     peak_rss_mib, pixels_for_tokens, print_device_counts, reset_peak_rss, surface_chunk,
 };
-use ggpt_model::device_stats::{DeviceCounts, KernelTiming, observe};
+use ggpt_model::device_stats::{KernelTiming, observe};
 use ggpt_model::{Ggpt, GgptConfig};
 use ggpt_train::chunkset::TrainChunk;
 use ggpt_train::trainer::{Recompute, StepPlan, adam, parallel_step};
@@ -156,7 +156,7 @@ fn main() -> Result<()> {
                     let params = ggpt_model::weights::num_trainable_params(&model);
                     let mut optim = adam();
                     let mut secs = Vec::with_capacity(args.steps);
-                    let mut step_counts: Vec<DeviceCounts> = Vec::with_capacity(args.steps);
+                    let mut step_counts = Vec::with_capacity(args.steps);
                     for s in 0..=args.steps {
                         // the warm-up step is not profiled
                         ggpt_model::profile::set_enabled(args.profile && s > 0);
@@ -179,7 +179,6 @@ fn main() -> Result<()> {
                         tracing::debug!("step {s}: loss {:.4}", loss.total);
                     }
                     ggpt_model::profile::set_enabled(false);
-                    let counted = args.count || args.kernel_times;
                     if args.profile {
                         for e in ggpt_model::profile::take_report() {
                             eprintln!(
@@ -204,7 +203,7 @@ fn main() -> Result<()> {
                         n_tokens as f64 / mean,
                         ((peak - 1024.0) * 1024.0 / n_tokens as f64).max(0.0)
                     );
-                    if counted {
+                    if args.count || args.kernel_times {
                         for c in &step_counts {
                             print_device_counts(c, args.kernel_times);
                         }
