@@ -38,7 +38,8 @@ impl ModelPreset {
 #[derive(Args, Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct ModelArgs {
     /// Weights: an official `.pth` / `.safetensors`, a project `.bpk`, a model folder
-    /// (`model.safetensors` + `model_config.json` [+ `inference.json`]) or, where the command
+    /// (`model.safetensors` + `model_config.json` [+ `inference.json`]), `shipped` (the shipped
+    /// model embedded in the binary, where the command runs inference) or, where the command
     /// says so, a training run or checkpoint directory.
     #[arg(long, alias = "model", value_name = "PATH")]
     pub weights: Option<PathBuf>,

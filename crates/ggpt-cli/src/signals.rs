@@ -21,3 +21,10 @@ pub fn stop_flag() -> anyhow::Result<Arc<AtomicBool>> {
     .map_err(|e| anyhow::anyhow!("installing the Ctrl-C / SIGTERM handler: {e}"))?;
     Ok(flag)
 }
+
+/// [`stop_flag`] as a library stop request ([`ggpt_core::Cancel`]): the first Ctrl-C / SIGTERM
+/// ends the run at its next check (between SfM steps, BA iterations, network forwards) with a
+/// `cancelled` error; nothing is half-written.
+pub fn stop_token() -> anyhow::Result<ggpt_core::Cancel> {
+    Ok(ggpt_core::Cancel::from_flag(stop_flag()?))
+}

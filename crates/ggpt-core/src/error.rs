@@ -25,6 +25,19 @@ pub enum CoreError {
         /// The problem.
         message: String,
     },
+    /// A NaN / inf in an input array: `path` is the file (or the description of in-memory
+    /// arrays), `key` the array, `index` the flat C-order index of the first bad value.
+    #[error("{path} [{key}]: non-finite value {value} at flat index {index}")]
+    NonFinite {
+        /// The file or origin.
+        path: PathBuf,
+        /// The array.
+        key: String,
+        /// Flat index of the first non-finite value.
+        index: usize,
+        /// The value.
+        value: f64,
+    },
     /// Scene content is inconsistent or invalid (not tied to one file).
     #[error("invalid scene: {0}")]
     Invalid(String),

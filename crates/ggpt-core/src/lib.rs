@@ -27,5 +27,5 @@ pub mod sim3;
 
 pub use camera::Cameras;
 pub use error::{CoreError, Result};
-pub use progress::Progress;
+pub use progress::{Cancel, Progress};
 pub use scene::{Dims, FeedForward, GroundTruth, MatchSet, Scene, SfmResult};

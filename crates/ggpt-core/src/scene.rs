@@ -122,13 +122,7 @@ impl Scene {
             Ok(())
         };
         let check_finite = |what: &str, v: &[f32]| -> Result<()> {
-            if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-                return Err(CoreError::Invalid(format!(
-                    "{what}: non-finite value {} at flat index {i}",
-                    v[i]
-                )));
-            }
-            Ok(())
+            crate::io::st::check_finite_f32(std::path::Path::new(&self.name), what, v)
         };
         let check_cams = |what: &str, c: &Cameras| -> Result<()> {
             if c.cam_from_world.len() != d.n || c.intrinsics.len() != d.n {

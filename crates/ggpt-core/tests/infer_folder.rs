@@ -109,11 +109,22 @@ fn wrong_dtype_and_nan_in_npz() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("scn");
     write_infer_folder(&p, &full_scene(2, 3, 4)).unwrap();
+    // float64 points and confidences are read (rounded to f32), integers are not
+    let before = read_scene(&p).unwrap();
     let mut z = read_npz(&p.join("ff.npz")).unwrap();
-    if let Some(a) = z.get_mut("conf")
-        && let NpyData::F32(v) = &a.data
-    {
-        a.data = NpyData::F64(v.iter().map(|&x| x as f64).collect());
+    for key in ["conf", "points"] {
+        if let Some(a) = z.get_mut(key)
+            && let NpyData::F32(v) = &a.data
+        {
+            a.data = NpyData::F64(v.iter().map(|&x| x as f64).collect());
+        }
+    }
+    let arrays: Vec<_> = z.iter().map(|(k, a)| (k.as_str(), a)).collect();
+    write_npz(&p.join("ff.npz"), &arrays, false).unwrap();
+    assert_eq!(read_scene(&p).unwrap().ff, before.ff);
+    let mut z = read_npz(&p.join("ff.npz")).unwrap();
+    if let Some(a) = z.get_mut("conf") {
+        a.data = NpyData::I32(vec![1; 24]);
     }
     let arrays: Vec<_> = z.iter().map(|(k, a)| (k.as_str(), a)).collect();
     write_npz(&p.join("ff.npz"), &arrays, false).unwrap();

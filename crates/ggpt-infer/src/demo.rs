@@ -4,15 +4,13 @@
 use std::path::PathBuf;
 
 use ggpt_core::io::scene_dir::write_scene;
-use ggpt_model::device::device_from_name;
 use ggpt_synth::{Regime, SceneKind, SynthConfig, generate};
 
 use ggpt_model::ModelError;
-use ggpt_model::model_dir::{ModelSpec, load_model, resolve_model, shipped_model_dir};
-use ggpt_scene::chunk_settings::{ChunkingSettings, resolve_chunking};
+use ggpt_model::model_dir::{ModelSpec, resolve_model};
 
-use crate::pipeline::{RunOptions, RunReport, run_scene};
-use crate::refiner::BurnRefiner;
+use crate::engine::Refiner;
+use crate::pipeline::{RunOptions, RunReport, save_run};
 use crate::rss::StageLog;
 use crate::{InferError, Result};
 
@@ -33,8 +31,8 @@ pub struct DemoOptions {
     pub height: usize,
     /// Output folder (scene in `<out>/scene`, results in `<out>`).
     pub out: PathBuf,
-    /// Weights file or model folder (`None`: the shipped model,
-    /// [`ggpt_model::model_dir::shipped_model_dir`]).
+    /// Weights file or model folder (`None`: the shipped model embedded in the binary,
+    /// [`ModelSpec::shipped`]).
     pub weights: Option<PathBuf>,
     /// Model configuration file (default: `model_config.json` next to the weights).
     pub model_config: Option<PathBuf>,
@@ -42,11 +40,8 @@ pub struct DemoOptions {
     pub preset: Option<String>,
     /// Device name (`cpu`, `ndarray`, `flex`, `wgpu`).
     pub device: String,
-    /// Explicit chunk-sampler settings (`--chunk-size` etc.); they win over the model's
-    /// `inference.json`, which wins over `run.refine.chunking`.
-    pub chunking: ChunkingSettings,
-    /// Everything after the synthesis (`run.refine.chunking` is the base of the chunk-sampler
-    /// resolution, see [`ggpt_scene::chunk_settings::resolve_chunking`]).
+    /// Everything after the synthesis (chunk sampler: `run.chunking` over the model's
+    /// `inference.json` over `run.refine.chunking`, [`Refiner::resolve_chunking`]).
     pub run: RunOptions,
 }
 
@@ -55,23 +50,29 @@ pub struct DemoOptions {
 pub struct DemoReport {
     /// The generated scene, written as a project scene directory.
     pub scene_dir: PathBuf,
-    /// The model used.
+    /// The model used (`<embedded>/...` for the shipped model).
     pub weights: PathBuf,
+    /// Whether that is the shipped model embedded in the binary (`--weights shipped`).
+    pub shipped: bool,
     /// The inference run.
     pub run: RunReport,
 }
 
-/// Resolves the model (the shipped one by default), with a clear message when a file is
-/// missing.
+/// Resolves the model (the embedded shipped one by default), with a clear message when a file
+/// is missing.
 fn demo_model(opts: &DemoOptions) -> Result<ModelSpec> {
-    let weights = match &opts.weights {
-        Some(w) => w.clone(),
-        None => shipped_model_dir()?,
+    let Some(weights) = &opts.weights else {
+        if opts.model_config.is_some() || opts.preset.is_some() {
+            return Err(InferError::Invalid(
+                "a model configuration or preset needs --weights (the shipped model has its own configuration)".into(),
+            ));
+        }
+        return Ok(ModelSpec::shipped()?);
     };
-    resolve_model(&weights, opts.model_config.as_deref(), opts.preset.as_deref()).map_err(|e| match e {
+    resolve_model(weights, opts.model_config.as_deref(), opts.preset.as_deref()).map_err(|e| match e {
         ModelError::Missing { what, path } => InferError::Model(ModelError::Missing {
             what: format!(
-                "{what} of the demo model (the shipped model lives in models/ggpt-synth-small/ with model.safetensors and model_config.json; pass --weights FILE [--model-config FILE] to use another)"
+                "{what} of the demo model (pass --weights FILE [--model-config FILE], or leave --weights out for the shipped model)"
             ),
             path,
         }),
@@ -82,27 +83,18 @@ fn demo_model(opts: &DemoOptions) -> Result<ModelSpec> {
 /// Generates a synthetic scene (`ggpt-synth`, with simulated feed-forward prediction and dense
 /// matches), writes it to `<out>/scene`, runs SfM and refinement and writes every output of
 /// `ggpt-infer run` into `<out>`. `progress` receives the SfM and refinement reports (see
-/// [`run_scene`]).
+/// [`Refiner::refine`]).
 pub fn run_demo(
     opts: &DemoOptions,
     log: &mut StageLog,
-    progress: &mut dyn FnMut(ggpt_core::Progress),
+    progress: &mut (dyn FnMut(ggpt_core::Progress) + Send),
 ) -> Result<DemoReport> {
     let spec = demo_model(opts)?;
-    let mut run_opts = opts.run.clone();
-    // the caller validated the flags under their own names ([`ChunkingSettings::validate`])
-    let chunking = resolve_chunking(
-        &run_opts.refine.chunking,
-        spec.chunking_layer(),
-        &opts.chunking,
-        |f| format!("chunking.{f}"),
-    )?;
-    tracing::info!("chunk sampler: {}", chunking.describe());
-    run_opts.refine.chunking = chunking.params.clone();
-    let device = device_from_name(&opts.device)?;
+    let (weights, shipped) = (spec.weights.clone(), spec.is_embedded());
     log.start("load model");
-    let model = load_model(&spec, &device)?;
-    let mut refiner = BurnRefiner::new(model, spec.config.clone(), device)?.with_rss_stages(true);
+    let mut refiner = Refiner::load(spec, &opts.device, 0)?;
+    // the chunk settings fail now rather than after the synthesis
+    refiner.resolve_chunking(&opts.run)?;
 
     log.start("synth");
     let cfg = SynthConfig {
@@ -128,37 +120,15 @@ pub fn run_demo(
         scene_dir.display()
     );
 
-    let config = serde_json::json!({
-        "command": "demo",
-        "synth": cfg,
-        "weights": spec.weights,
-        "model_config_origin": spec.origin,
-        "model_config": spec.config,
-        "device": opts.device,
-        "chunking": chunking,
-        "refine": run_opts.refine,
-        "export": run_opts.export,
-        "sfm_preset": format!("{:?}", run_opts.sfm_preset),
-    });
-    let meta = serde_json::json!({
-        "ggpt_infer_version": env!("CARGO_PKG_VERSION"),
-        "backend": opts.device,
-        "dtype": "f32",
-        "seed": opts.seed,
-    });
-    let run = run_scene(
-        &mut scene,
-        &mut refiner,
-        &run_opts,
-        &opts.out,
-        &config,
-        meta,
-        log,
-        progress,
-    )?;
+    let run = refiner.refine(&mut scene, &opts.run, log, progress)?;
+    let mut config = refiner.run_config("demo", serde_json::json!(scene_dir), &opts.run, &run);
+    config["synth"] = serde_json::json!(cfg);
+    let meta = refiner.run_meta(&opts.run);
+    let run = save_run(run, &scene, &opts.run, &opts.out, &config, meta, log)?;
     Ok(DemoReport {
         scene_dir,
-        weights: spec.weights,
+        weights,
+        shipped,
         run,
     })
 }

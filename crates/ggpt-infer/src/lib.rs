@@ -12,10 +12,12 @@
 //! (metres, errors in cm); pixels in ff resolution with the pixel-centre convention.
 
 pub mod demo;
+pub mod engine;
 pub mod error;
 pub mod error_maps;
 pub mod pipeline;
 pub mod refiner;
 pub mod rss;
 
+pub use engine::Refiner;
 pub use error::{InferError, Result};

@@ -16,17 +16,16 @@ use ggpt_cli::{
     StageBars,
 };
 use ggpt_eval::format_refinement_table as format_table;
+use ggpt_infer::Refiner;
 use ggpt_infer::demo::{DemoOptions, run_demo};
-use ggpt_infer::pipeline::{RunOptions, RunReport, run_scene};
-use ggpt_infer::refiner::BurnRefiner;
+use ggpt_infer::pipeline::{RunOptions, RunReport, save_run};
 use ggpt_infer::rss::{StageLog, StageTiming};
 use ggpt_model::chunk_io::{chunk_outputs_to_bytes, read_chunk_inputs};
 use ggpt_model::device::device_from_name;
 use ggpt_model::infer::prepare_chunks;
-use ggpt_model::model_dir::{load_model, resolve_model};
+use ggpt_model::model_dir::resolve_model;
 use ggpt_model::weights::load_checkpoint;
 use ggpt_model::{Ggpt, GgptConfig};
-use ggpt_scene::chunk_settings::resolve_chunking;
 use ggpt_scene::driver::RefineOptions;
 use ggpt_scene::export::{ColmapExportOptions, ExportOptions};
 use ggpt_scene::fusion::FusionMode;
@@ -260,6 +259,10 @@ fn run_options(c: &CommonArgs, seed: u64, chunk_seed: Option<u64>) -> Result<Run
         allow_unrefined: c.allow_unrefined,
         ..RefineOptions::default()
     };
+    let chunking = c.chunking.settings();
+    chunking
+        .validate(ChunkingArgs::flag)
+        .map_err(anyhow::Error::msg)?;
     let export = ExportOptions {
         conf_quantile: c.conf_quantile,
         max_points: c.max_points,
@@ -276,6 +279,7 @@ fn run_options(c: &CommonArgs, seed: u64, chunk_seed: Option<u64>) -> Result<Run
     };
     Ok(RunOptions {
         refine,
+        chunking,
         export,
         sfm_preset: Preset::parse(c.sfm_preset.name())?,
         evaluate: true,
@@ -338,6 +342,7 @@ fn run_run(args: RunArgs) -> Result<()> {
         args.seed.unwrap_or(ggpt_scene::driver::DEFAULT_SEED),
         args.seed,
     )?;
+    opts.refine.cancel = ggpt_cli::signals::stop_token()?;
     let mut log = StageLog::new();
     log.start("load model");
     let model_args = args.model.normalized();
@@ -346,18 +351,9 @@ fn run_run(args: RunArgs) -> Result<()> {
         model_args.model_config.as_deref(),
         model_args.preset_name(),
     )?;
-    let chunking = resolve_chunking(
-        &opts.refine.chunking,
-        spec.chunking_layer(),
-        &args.common.chunking.settings(),
-        ChunkingArgs::flag,
-    )?;
-    info!("chunk sampler: {}", chunking.describe());
-    opts.refine.chunking = chunking.params.clone();
-    let device = device_from_name(&args.common.device.device.to_string())?;
-    let model = load_model(&spec, &device)
-        .with_context(|| format!("loading weights {}", spec.weights.display()))?;
-    let mut refiner = BurnRefiner::new(model, spec.config.clone(), device)?.with_rss_stages(true);
+    let weights = spec.weights.clone();
+    let mut refiner = Refiner::load(spec, &args.common.device.device.to_string(), 0)
+        .with_context(|| format!("loading weights {}", weights.display()))?;
     log.start("load scene");
     let mut scene = load_scene(&args.scene)?;
     log.finish();
@@ -365,41 +361,22 @@ fn run_run(args: RunArgs) -> Result<()> {
         "scene {} ({} views, {}x{})",
         scene.name, scene.dims.n, scene.dims.w, scene.dims.h
     );
-    let config = serde_json::json!({
-        "command": "run",
-        "scene": args.scene,
-        "weights": spec.weights,
-        "model_config_origin": spec.origin,
-        "model_config": spec.config,
-        "device": args.common.device,
-        "fusion": args.common.fusion,
-        "colmap_points": args.common.colmap_points,
-        "chunking": chunking,
-        "refine": opts.refine,
-        "export": opts.export,
-        "sfm_preset": args.common.sfm_preset,
-        "error_maps": opts.error_maps,
-        "error_map_max_cm": opts.error_map_max_cm,
-    });
-    let meta = serde_json::json!({
-        "ggpt_infer_version": env!("CARGO_PKG_VERSION"),
-        "backend": args.common.device.device,
-        "dtype": "f32",
-        "seed": opts.refine.seed,
-    });
     let mut bars = StageBars::new();
-    let report = run_scene(
-        &mut scene,
-        &mut refiner,
+    let run = refiner
+        .refine(&mut scene, &opts, &mut log, &mut |p| bars.report(p))
+        .with_context(|| format!("refining scene {}", args.scene.display()))?;
+    bars.finish();
+    let config = refiner.run_config("run", serde_json::json!(args.scene), &opts, &run);
+    let report = save_run(
+        run,
+        &scene,
         &opts,
         &args.out,
         &config,
-        meta,
+        refiner.run_meta(&opts),
         &mut log,
-        &mut |p| bars.report(p),
     )
-    .with_context(|| format!("refining scene {}", args.scene.display()))?;
-    bars.finish();
+    .with_context(|| format!("writing the outputs of scene {}", args.scene.display()))?;
     print_report(&report);
     Ok(())
 }
@@ -427,13 +404,6 @@ fn run_demo_cmd(args: DemoArgs) -> Result<()> {
         model_config: model.model_config.clone(),
         preset: model.preset_name().map(String::from),
         device: args.common.device.device.to_string(),
-        chunking: {
-            let flags = args.common.chunking.settings();
-            flags
-                .validate(ChunkingArgs::flag)
-                .map_err(anyhow::Error::msg)?;
-            flags
-        },
         run: run_options(&args.common, args.seed, None)?,
     };
     let mut log = StageLog::new();
@@ -447,14 +417,22 @@ fn run_demo_cmd(args: DemoArgs) -> Result<()> {
         args.views,
         args.width,
         args.height,
-        report.weights.display()
+        if report.shipped {
+            "shipped (embedded)".to_string()
+        } else {
+            report.weights.display().to_string()
+        }
     );
     print_report(&report.run);
+    let weights = if report.shipped {
+        ggpt_model::model_dir::SHIPPED.to_string()
+    } else {
+        report.weights.display().to_string()
+    };
     println!(
-        "  {} (the generated scene; rerun: ggpt-infer run --scene {} --weights {} --out DIR)",
+        "  {} (the generated scene; rerun: ggpt-infer run --scene {} --weights {weights} --out DIR)",
         report.scene_dir.display(),
         report.scene_dir.display(),
-        report.weights.display()
     );
     Ok(())
 }

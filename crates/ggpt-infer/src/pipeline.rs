@@ -7,7 +7,9 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use ggpt_core::chunking::ChunkingSettings;
 use ggpt_core::{Progress, Scene, SfmResult};
+use ggpt_scene::chunk_settings::ResolvedChunking;
 use ggpt_scene::driver::{RefineOptions, RefinedScene, refine_scene_with_progress};
 use ggpt_scene::export::{ExportOptions, ExportSummary, RunOutput};
 use ggpt_scene::{ChunkRefiner, SceneError};
@@ -40,8 +42,14 @@ impl MeasuredRefiner for BurnRefiner {
 /// Options of [`run_scene`].
 #[derive(Debug, Clone)]
 pub struct RunOptions {
-    /// Alignment, chunking, batching, fusion (`pipeline.md` §3-§8).
+    /// Alignment, chunking, batching, fusion (`pipeline.md` §3-§8). `refine.chunking` is the
+    /// base of the chunk-sampler resolution ([`crate::engine::Refiner::refine`]), `refine.cancel`
+    /// the stop request of the whole run.
     pub refine: RefineOptions,
+    /// Explicit chunk-sampler settings (`--chunk-size`, ...): they win over the model's
+    /// `inference.json`, which wins over `refine.chunking` (resolved by
+    /// [`crate::engine::Refiner::refine`]; [`run_scene`] uses `refine.chunking` as given).
+    pub chunking: ChunkingSettings,
     /// PLY / arrays / COLMAP export (`pipeline.md` §9).
     pub export: ExportOptions,
     /// SfM threshold preset when the SfM stage has to run (default `demo`, the user-facing one).
@@ -58,6 +66,7 @@ impl Default for RunOptions {
     fn default() -> Self {
         RunOptions {
             refine: RefineOptions::default(),
+            chunking: ChunkingSettings::default(),
             export: ExportOptions::default(),
             sfm_preset: Preset::Demo,
             evaluate: true,
@@ -90,11 +99,13 @@ pub struct RunReport {
 
 /// Runs the SfM stage (`sfm.md`) when the scene has feed-forward outputs and matches but no SfM
 /// result; returns its summary (`None` when the scene already had an SfM result). `progress`
-/// receives the SfM stage's reports (`ggpt_sfm::pipeline::PROGRESS_STAGE`).
+/// receives the SfM stage's reports (`ggpt_sfm::pipeline::PROGRESS_STAGE`); `cancel` stops it
+/// between steps and BA iterations.
 pub fn ensure_sfm(
     scene: &mut Scene,
     preset: Preset,
     seed: u64,
+    cancel: &ggpt_core::Cancel,
     progress: &mut dyn FnMut(Progress),
 ) -> Result<Option<SfmSummary>> {
     if scene.sfm.is_some() {
@@ -111,6 +122,7 @@ pub fn ensure_sfm(
     }
     let mut cfg = SfmConfig::preset(preset);
     cfg.seed = seed;
+    cfg.cancel = cancel.clone();
     let out = run_sfm_with_progress(
         ff,
         &scene.images,
@@ -145,26 +157,43 @@ fn output_dir_error(out: &Path, e: SceneError) -> InferError {
     }
 }
 
-/// Runs everything after the scene is loaded: SfM if needed, refinement, export into `out`,
-/// evaluation and error maps when the scene has GT. Every file goes through one [`RunOutput`]:
-/// `config` is written as `config.json`; `meta` is extended with counts, stage timings and
-/// summaries and written as `meta.json`, once, when the run is complete.
-/// `progress` receives the reports of the SfM stage (when it runs) and of the refinement
-/// (stage `ggpt_scene::driver::PROGRESS_STAGE`, one unit per chunk).
-#[allow(clippy::too_many_arguments)]
-pub fn run_scene(
+/// The refinement of one scene, before anything is written: what [`refine_run`] computed.
+#[derive(Debug, Clone)]
+pub struct RefinedRun {
+    /// Fused result (SfM frame).
+    pub refined: RefinedScene,
+    /// The SfM result used (read from the scene, or computed).
+    pub sfm: SfmResult,
+    /// Summary of the SfM stage when it ran here.
+    pub sfm_summary: Option<SfmSummary>,
+    /// Network statistics.
+    pub network: RefinerStats,
+    /// The chunk sampler's settings and where each came from, when they were resolved for a
+    /// model ([`crate::engine::Refiner::refine`]; `None` from [`refine_run`], which uses
+    /// `opts.refine.chunking` as given).
+    pub chunking: Option<ResolvedChunking>,
+}
+
+/// SfM if needed (the result is stored in `scene.sfm`), pre-alignment, chunking, network and
+/// fusion; writes nothing. `log` receives the stages `sfm`, `prealign+chunking`, `network`,
+/// `records+fusion`; `progress` the reports of the SfM stage (when it runs) and of the
+/// refinement (stage `ggpt_scene::driver::PROGRESS_STAGE`, one unit per chunk). The stop
+/// requests of `opts.refine.cancel` are honoured between SfM steps, BA iterations and forwards.
+pub fn refine_run(
     scene: &mut Scene,
     refiner: &mut dyn MeasuredRefiner,
     opts: &RunOptions,
-    out: &Path,
-    config: &serde_json::Value,
-    meta: serde_json::Value,
     log: &mut StageLog,
     progress: &mut dyn FnMut(Progress),
-) -> Result<RunReport> {
-    let mut output = RunOutput::create(out).map_err(|e| output_dir_error(out, e))?;
+) -> Result<RefinedRun> {
     log.start("sfm");
-    let sfm_summary = ensure_sfm(scene, opts.sfm_preset, opts.refine.seed, progress)?;
+    let sfm_summary = ensure_sfm(
+        scene,
+        opts.sfm_preset,
+        opts.refine.seed,
+        &opts.refine.cancel,
+        progress,
+    )?;
     log.finish();
     let sfm = scene
         .sfm
@@ -209,7 +238,68 @@ pub fn run_scene(
         refined.covered.iter().filter(|&&c| c).count(),
         refined.dims.pixels()
     );
+    Ok(RefinedRun {
+        refined,
+        sfm,
+        sfm_summary,
+        network: stats,
+        chunking: None,
+    })
+}
 
+/// Runs everything after the scene is loaded: [`refine_run`], then [`save_run`] into `out`
+/// (created first, so that an unwritable folder fails before any work).
+#[allow(clippy::too_many_arguments)]
+pub fn run_scene(
+    scene: &mut Scene,
+    refiner: &mut dyn MeasuredRefiner,
+    opts: &RunOptions,
+    out: &Path,
+    config: &serde_json::Value,
+    meta: serde_json::Value,
+    log: &mut StageLog,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<RunReport> {
+    let output = RunOutput::create(out).map_err(|e| output_dir_error(out, e))?;
+    let run = refine_run(scene, refiner, opts, log, progress)?;
+    save_into(output, run, scene, opts, config, meta, log)
+}
+
+/// Writes a [`RefinedRun`] of `scene` into `out`: export files, `refined.safetensors`,
+/// `config.json` (`config`), and with ground truth (and `opts.evaluate`) the evaluation and error
+/// maps; `meta` is extended with counts, stage timings (the `log`'s) and summaries and written as
+/// `meta.json`, once, last. Every file goes through one [`RunOutput`] and is written atomically.
+pub fn save_run(
+    run: RefinedRun,
+    scene: &Scene,
+    opts: &RunOptions,
+    out: &Path,
+    config: &serde_json::Value,
+    meta: serde_json::Value,
+    log: &mut StageLog,
+) -> Result<RunReport> {
+    let output = RunOutput::create(out).map_err(|e| output_dir_error(out, e))?;
+    save_into(output, run, scene, opts, config, meta, log)
+}
+
+/// [`save_run`] into an open output folder.
+fn save_into(
+    mut output: RunOutput,
+    run: RefinedRun,
+    scene: &Scene,
+    opts: &RunOptions,
+    config: &serde_json::Value,
+    meta: serde_json::Value,
+    log: &mut StageLog,
+) -> Result<RunReport> {
+    let RefinedRun {
+        refined,
+        sfm,
+        sfm_summary,
+        network: stats,
+        chunking: _,
+    } = run;
+    let out = output.dir().to_path_buf();
     log.start("export");
     let mut export_opts = opts.export.clone();
     if let Some(c) = export_opts.colmap.as_mut() {
@@ -266,7 +356,7 @@ pub fn run_scene(
     }
     output.finish(&meta)?;
     Ok(RunReport {
-        out_dir: out.to_path_buf(),
+        out_dir: out,
         refined,
         sfm,
         sfm_summary,

@@ -102,6 +102,16 @@ impl BurnRefiner {
     pub fn config(&self) -> &GgptConfig {
         &self.cfg
     }
+
+    /// The network.
+    pub fn model(&self) -> &Ggpt {
+        &self.model
+    }
+
+    /// The device the network lives on.
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
 }
 
 impl ChunkRefiner for BurnRefiner {

@@ -44,7 +44,7 @@ pub struct StageTiming {
 }
 
 /// Collects [`StageTiming`]s: each stage starts by resetting the peak RSS and ends by reading it.
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 pub struct StageLog {
     stages: Vec<StageTiming>,
     current: Option<(String, Instant)>,

@@ -456,6 +456,7 @@ fn tiny_scene_with_sfm() -> ggpt_core::Scene {
         &mut scene,
         ggpt_sfm::masks::Preset::Demo,
         42,
+        &ggpt_core::Cancel::default(),
         &mut ggpt_core::progress::ignore,
     )
     .unwrap();

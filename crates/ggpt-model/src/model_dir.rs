@@ -11,7 +11,7 @@ use burn::tensor::Device;
 use ggpt_core::chunking::ChunkingSettings;
 
 use crate::error::{ModelError, Result};
-use crate::weights::load_checkpoint;
+use crate::weights::{load_checkpoint, load_safetensors_bytes};
 use crate::{Ggpt, GgptConfig};
 
 /// Weights file name inside a model folder.
@@ -25,73 +25,49 @@ pub const INFERENCE_SETTINGS_FILE: &str = "inference.json";
 /// Other weight file names accepted inside a model folder, after [`MODEL_WEIGHTS_FILE`].
 const OTHER_WEIGHT_FILES: [&str; 3] = ["model.pth", "model.bpk", "model.step228000.pth"];
 
-/// Folder name of the shipped model (under `models/` of the repository).
+/// Folder name of the shipped model (`crates/ggpt-model/models/`, linked from `models/` of the
+/// repository).
 pub const SHIPPED_MODEL_NAME: &str = "ggpt-synth-small";
-/// The shipped model folder in the source tree this crate was built from.
-const SOURCE_TREE_MODEL_DIR: &str =
-    concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/ggpt-synth-small");
-/// The shipped model's files, embedded at build time (2.5 MB).
+/// What `--weights` / `Model(...)` accept for the shipped model (a file or folder of that name,
+/// when one exists, wins).
+pub const SHIPPED: &str = "shipped";
+/// The shipped model folder inside this crate (in the source tree, or the unpacked crate of a
+/// source distribution).
+const SOURCE_TREE_MODEL_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/models/ggpt-synth-small");
+/// The shipped model's weights (official key names), embedded at build time (2.5 MB).
+const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../models/ggpt-synth-small/model.safetensors");
+/// The shipped model's configuration.
+const SHIPPED_CONFIG: &str = include_str!("../models/ggpt-synth-small/model_config.json");
+/// The shipped model's recommended inference settings.
+const SHIPPED_INFERENCE: &str = include_str!("../models/ggpt-synth-small/inference.json");
+/// The shipped model's files, as a model folder holds them.
 const SHIPPED_FILES: [(&str, &[u8]); 3] = [
-    (
-        MODEL_WEIGHTS_FILE,
-        include_bytes!("../../../models/ggpt-synth-small/model.safetensors"),
-    ),
-    (
-        MODEL_CONFIG_FILE,
-        include_bytes!("../../../models/ggpt-synth-small/model_config.json"),
-    ),
-    (
-        INFERENCE_SETTINGS_FILE,
-        include_bytes!("../../../models/ggpt-synth-small/inference.json"),
-    ),
+    (MODEL_WEIGHTS_FILE, SHIPPED_WEIGHTS),
+    (MODEL_CONFIG_FILE, SHIPPED_CONFIG.as_bytes()),
+    (INFERENCE_SETTINGS_FILE, SHIPPED_INFERENCE.as_bytes()),
 ];
 
-/// The shipped model folder, found in this order:
-/// 1. `models/ggpt-synth-small/` next to the running executable (a release archive);
-/// 2. the source tree the binary was built from (`cargo run` in the repository);
-/// 3. the copy embedded in the binary, written once to
-///    `$XDG_CACHE_HOME/ggpt-rs/<version>/ggpt-synth-small/` (else `~/.cache/...`, else the
-///    temporary directory), atomically, and rewritten when its files differ from the embedded
-///    ones (`cargo install` users).
-///
-/// A folder counts only when it holds the same files as the embedded model.
+/// The shipped model folder on disk, for tools that need files (training from it, copying it):
+/// `models/ggpt-synth-small/` next to the running executable (a release archive), else the
+/// source tree this crate was built from. A folder counts only when it holds the same files as
+/// the embedded model. Inference does not need it: [`ModelSpec::shipped`] loads the embedded
+/// copy from memory.
 pub fn shipped_model_dir() -> Result<PathBuf> {
     let beside_exe = std::env::current_exe().ok().and_then(|exe| {
         exe.parent()
             .map(|d| d.join("models").join(SHIPPED_MODEL_NAME))
     });
-    let candidates: Vec<PathBuf> = beside_exe
+    beside_exe
         .into_iter()
         .chain([PathBuf::from(SOURCE_TREE_MODEL_DIR)])
-        .collect();
-    find_or_extract_shipped(
-        &candidates,
-        &cache_root()
-            .join("ggpt-rs")
-            .join(env!("CARGO_PKG_VERSION"))
-            .join(SHIPPED_MODEL_NAME),
-    )
-}
-
-/// The first of `candidates` that holds the shipped model, else `extract_to` after writing the
-/// embedded files there (unless it already holds them).
-fn find_or_extract_shipped(candidates: &[PathBuf], extract_to: &Path) -> Result<PathBuf> {
-    if let Some(dir) = candidates.iter().find(|d| holds_shipped_files(d)) {
-        return Ok(std::fs::canonicalize(dir).unwrap_or_else(|_| dir.clone()));
-    }
-    if !holds_shipped_files(extract_to) {
-        for (name, bytes) in SHIPPED_FILES {
-            let path = extract_to.join(name);
-            ggpt_core::io::atomic::write_bytes_atomic(&path, bytes).map_err(|e| {
-                ModelError::Missing {
-                    what: format!("shipped model (writing the embedded copy failed: {e})"),
-                    path: path.clone(),
-                }
-            })?;
-        }
-        tracing::info!("shipped model written to {}", extract_to.display());
-    }
-    Ok(extract_to.to_path_buf())
+        .find(|d| holds_shipped_files(d))
+        .map(|d| std::fs::canonicalize(&d).unwrap_or(d))
+        .ok_or_else(|| ModelError::Missing {
+            what: format!(
+                "shipped model folder (not on disk next to this executable; the embedded copy is `--weights {SHIPPED}`)"
+            ),
+            path: PathBuf::from(SOURCE_TREE_MODEL_DIR),
+        })
 }
 
 /// Whether `dir` holds the embedded shipped model's files, byte for byte.
@@ -99,18 +75,6 @@ fn holds_shipped_files(dir: &Path) -> bool {
     SHIPPED_FILES
         .iter()
         .all(|(name, bytes)| std::fs::read(dir.join(name)).is_ok_and(|b| b == *bytes))
-}
-
-/// The user cache directory (`$XDG_CACHE_HOME`, else `$HOME/.cache`, else the temporary one).
-fn cache_root() -> PathBuf {
-    let env_dir = |k: &str| {
-        std::env::var_os(k)
-            .filter(|v| !v.is_empty())
-            .map(PathBuf::from)
-    };
-    env_dir("XDG_CACHE_HOME")
-        .or_else(|| env_dir("HOME").map(|h| h.join(".cache")))
-        .unwrap_or_else(std::env::temp_dir)
 }
 
 /// Where the model configuration came from.
@@ -126,8 +90,12 @@ pub enum ConfigOrigin {
 /// A resolved model: weights file, configuration and optional recommended inference settings.
 #[derive(Debug, Clone)]
 pub struct ModelSpec {
-    /// Weights file (`.safetensors` / `.pth` official keys, or `.bpk`).
+    /// Weights file (`.safetensors` / `.pth` official keys, or `.bpk`); for the embedded shipped
+    /// model, the name it is reported under (`<embedded>/ggpt-synth-small/model.safetensors`).
     pub weights: PathBuf,
+    /// The weights' bytes when they are embedded in the binary (the shipped model): loaded from
+    /// memory, nothing is read from or written to disk.
+    pub embedded_weights: Option<&'static [u8]>,
     /// Network configuration.
     pub config: GgptConfig,
     /// Where the configuration came from.
@@ -137,6 +105,31 @@ pub struct ModelSpec {
 }
 
 impl ModelSpec {
+    /// The shipped model (`ggpt-synth-small`, the `small` configuration), embedded in the binary:
+    /// its weights, configuration and `inference.json` come from memory.
+    pub fn shipped() -> Result<Self> {
+        let base = PathBuf::from("<embedded>").join(SHIPPED_MODEL_NAME);
+        let config_path = base.join(MODEL_CONFIG_FILE);
+        let config = GgptConfig::from_json_str(SHIPPED_CONFIG, &config_path)?;
+        let settings_path = base.join(INFERENCE_SETTINGS_FILE);
+        let settings = parse_inference_settings(SHIPPED_INFERENCE, &settings_path)?;
+        Ok(ModelSpec {
+            weights: base.join(MODEL_WEIGHTS_FILE),
+            embedded_weights: Some(SHIPPED_WEIGHTS),
+            config,
+            origin: ConfigOrigin::File(config_path),
+            inference: Some(ModelInferenceSettings {
+                path: settings_path,
+                settings,
+            }),
+        })
+    }
+
+    /// Whether this is the embedded shipped model.
+    pub fn is_embedded(&self) -> bool {
+        self.embedded_weights.is_some()
+    }
+
     /// The model layer of the chunk-sampler resolution: the `inference.json` path and its
     /// `chunking` object (`None` without the file).
     pub fn chunking_layer(&self) -> Option<(&Path, Option<&ChunkingSettings>)> {
@@ -166,12 +159,20 @@ pub struct ModelInferenceSettings {
 /// Reads and validates an `inference.json` file; every problem is a [`ModelError::Settings`]
 /// naming the file.
 pub fn read_inference_settings(path: &Path) -> Result<InferenceSettings> {
+    let text = std::fs::read_to_string(path).map_err(|e| ModelError::Settings {
+        path: path.to_path_buf(),
+        message: format!("cannot read: {e}"),
+    })?;
+    parse_inference_settings(&text, path)
+}
+
+/// Parses and validates the text of an `inference.json` read from `path` (named in errors).
+fn parse_inference_settings(text: &str, path: &Path) -> Result<InferenceSettings> {
     let err = |message: String| ModelError::Settings {
         path: path.to_path_buf(),
         message,
     };
-    let text = std::fs::read_to_string(path).map_err(|e| err(format!("cannot read: {e}")))?;
-    let settings: InferenceSettings = serde_json::from_str(&text).map_err(|e| {
+    let settings: InferenceSettings = serde_json::from_str(text).map_err(|e| {
         let kind = if e.is_data() { "invalid settings" } else { "malformed JSON" };
         err(format!("{kind}: {e} (expected {{\"chunking\": {{\"chunk_size\", \"max_pixels\", \"min_dlt\", \"min_pixels\"}}}}, all optional)"))
     })?;
@@ -181,14 +182,26 @@ pub fn read_inference_settings(path: &Path) -> Result<InferenceSettings> {
     Ok(settings)
 }
 
-/// Resolves `weights` (a file, or a model folder holding `model.safetensors`) and the
-/// configuration: `model_config` file, else `preset`, else `model_config.json` next to the
-/// weights. Missing files give [`ModelError::Missing`] naming the path.
+/// Resolves `weights` (a file, a model folder holding `model.safetensors`, or [`SHIPPED`] for
+/// the embedded shipped model when no file of that name exists) and the configuration:
+/// `model_config` file, else `preset`, else `model_config.json` next to the weights. Missing
+/// files give [`ModelError::Missing`] naming the path.
 pub fn resolve_model(
     weights: &Path,
     model_config: Option<&Path>,
     preset: Option<&str>,
 ) -> Result<ModelSpec> {
+    if weights == Path::new(SHIPPED) && !weights.exists() {
+        if model_config.is_some() || preset.is_some() {
+            return Err(ModelError::Config {
+                path: PathBuf::from(SHIPPED),
+                message: format!(
+                    "the shipped model has its own configuration: give no model configuration or preset with `{SHIPPED}`"
+                ),
+            });
+        }
+        return ModelSpec::shipped();
+    }
     let weights = if weights.is_dir() {
         std::iter::once(MODEL_WEIGHTS_FILE)
             .chain(OTHER_WEIGHT_FILES)
@@ -248,15 +261,21 @@ pub fn resolve_model(
     };
     Ok(ModelSpec {
         weights,
+        embedded_weights: None,
         config,
         origin,
         inference,
     })
 }
 
-/// Builds the network on `device` and loads the weights strictly.
+/// Builds the network on `device` and loads the weights strictly (from memory for the embedded
+/// shipped model).
 pub fn load_model(spec: &ModelSpec, device: &Device) -> Result<Ggpt> {
-    load_checkpoint(Ggpt::new(&spec.config, device), &spec.weights)
+    let model = Ggpt::new(&spec.config, device);
+    match spec.embedded_weights {
+        Some(bytes) => load_safetensors_bytes(model, bytes.to_vec(), &spec.weights),
+        None => load_checkpoint(model, &spec.weights),
+    }
 }
 
 #[cfg(test)]
@@ -305,10 +324,23 @@ mod tests {
         assert!(holds_shipped_files(&dir), "{}", dir.display());
         let spec = resolve_model(&dir, None, None).unwrap();
         assert_eq!(spec.weights, dir.join(MODEL_WEIGHTS_FILE));
+        assert!(!spec.is_embedded());
         assert!(
             spec.inference.is_some(),
             "the shipped model has an inference.json"
         );
+        // The embedded copy: same configuration and settings as the folder, from memory.
+        let embedded = resolve_model(Path::new(SHIPPED), None, None).unwrap();
+        assert!(embedded.is_embedded());
+        assert_eq!(embedded.config, spec.config);
+        assert_eq!(
+            embedded.inference.as_ref().map(|m| &m.settings),
+            spec.inference.as_ref().map(|m| &m.settings)
+        );
+        let e = resolve_model(Path::new(SHIPPED), None, Some("small"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("own configuration"), "{e}");
         // An incomplete or stale folder does not count.
         let tmp = tempfile::tempdir().unwrap();
         assert!(!holds_shipped_files(tmp.path()));
@@ -318,30 +350,38 @@ mod tests {
         assert!(holds_shipped_files(tmp.path()));
         std::fs::write(tmp.path().join(MODEL_CONFIG_FILE), b"{}").unwrap();
         assert!(!holds_shipped_files(tmp.path()));
-        // Without a folder that holds it (an installed binary), the embedded copy is written
-        // to the cache, reused, and rewritten when stale.
-        let cache = tmp.path().join("cache/ggpt-synth-small");
-        let got = find_or_extract_shipped(&[tmp.path().to_path_buf()], &cache).unwrap();
-        assert_eq!(got, cache);
-        assert!(holds_shipped_files(&cache));
-        assert!(
-            resolve_model(&cache, None, None)
-                .unwrap()
-                .inference
-                .is_some()
-        );
-        std::fs::write(cache.join(MODEL_WEIGHTS_FILE), b"truncated").unwrap();
-        find_or_extract_shipped(&[], &cache).unwrap();
-        assert!(holds_shipped_files(&cache), "a stale copy is rewritten");
-        // A complete folder among the candidates wins over the cache.
-        let exe_dir = tmp.path().join("bin/models/ggpt-synth-small");
-        for (name, bytes) in SHIPPED_FILES {
-            std::fs::create_dir_all(&exe_dir).unwrap();
-            std::fs::write(exe_dir.join(name), bytes).unwrap();
-        }
-        let got = find_or_extract_shipped(std::slice::from_ref(&exe_dir), &cache).unwrap();
-        assert_eq!(got, std::fs::canonicalize(&exe_dir).unwrap());
     }
+
+    #[test]
+    fn the_embedded_model_loads_like_the_folder() {
+        let device = crate::device::device_from_name("cpu").unwrap();
+        let folder = load_model(
+            &resolve_model(&shipped_model_dir().unwrap(), None, None).unwrap(),
+            &device,
+        )
+        .unwrap();
+        let embedded = load_model(&ModelSpec::shipped().unwrap(), &device).unwrap();
+        let (a, b) = (all_values(&folder), all_values(&embedded));
+        assert!(a.len() >= crate::weights::num_trainable_params(&folder));
+        assert!(a == b, "the embedded copy loads other values than the folder");
+    }
+
+    /// Every float value of the model's parameters and buffers, in visiting order.
+    fn all_values(m: &Ggpt) -> Vec<f32> {
+        use burn::module::{Module, ModuleVisitor, Param};
+        use burn::tensor::Tensor;
+        struct Collect(Vec<f32>);
+        impl ModuleVisitor for Collect {
+            fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+                let data = param.val().into_data();
+                self.0.extend(data.iter::<f32>());
+            }
+        }
+        let mut c = Collect(Vec::new());
+        m.visit(&mut c);
+        c.0
+    }
+
 
     fn spec_with(dir: &Path, inference_json: Option<&str>) -> Result<ModelSpec> {
         let w = dir.join(MODEL_WEIGHTS_FILE);

@@ -277,26 +277,36 @@ pub fn load_pytorch(mut model: Ggpt, path: &Path) -> Result<Ggpt> {
 }
 
 /// Loads an official `.safetensors` strictly.
-pub fn load_safetensors(mut model: Ggpt, path: &Path) -> Result<Ggpt> {
+pub fn load_safetensors(model: Ggpt, path: &Path) -> Result<Ggpt> {
     if !path.is_file() {
         return Err(ModelError::CheckpointRead {
             path: path.to_path_buf(),
             message: "no such file".into(),
         });
     }
-    let mut store = SafetensorsStore::from_file(path)
+    let bytes = std::fs::read(path).map_err(|e| ModelError::CheckpointRead {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    load_safetensors_bytes(model, bytes, path)
+}
+
+/// Loads official `.safetensors` bytes strictly (the embedded shipped model); `name` is the
+/// path reported in errors.
+pub fn load_safetensors_bytes(mut model: Ggpt, bytes: Vec<u8>, name: &Path) -> Result<Ggpt> {
+    let mut store = SafetensorsStore::from_bytes(Some(bytes))
         .with_from_adapter(PyTorchToBurnAdapter)
-        .remap(remapper(path)?)
+        .remap(remapper(name)?)
         .map_indices_contiguous(false)
         .allow_partial(true)
         .validate(false);
     let result = model
         .load_from(&mut store)
         .map_err(|e| ModelError::CheckpointRead {
-            path: path.to_path_buf(),
+            path: name.to_path_buf(),
             message: e.to_string(),
         })?;
-    check_strict(path, &result)?;
+    check_strict(name, &result)?;
     Ok(model)
 }
 

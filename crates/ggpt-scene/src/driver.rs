@@ -75,6 +75,10 @@ pub struct RefineOptions {
     /// alignment, and switches the radius to the pooled rule over `F`.
     #[serde(skip)]
     pub roi: Option<RegionOfInterest>,
+    /// Stop request, checked before every network forward: a cancelled token ends the call
+    /// with [`SceneError::Cancelled`] (default: never cancelled).
+    #[serde(skip)]
+    pub cancel: ggpt_core::Cancel,
 }
 
 impl Default for RefineOptions {
@@ -89,6 +93,7 @@ impl Default for RefineOptions {
             fusion: FusionMode::Mean,
             allow_unrefined: false,
             roi: None,
+            cancel: ggpt_core::Cancel::default(),
         }
     }
 }
@@ -392,6 +397,9 @@ pub fn refine_scene_with_progress(
             tokens += t;
             batch.push(rec);
             next += 1;
+        }
+        if opts.cancel.is_cancelled() {
+            return Err(SceneError::Cancelled);
         }
         let out = refiner.refine(&batch)?;
         if out.len() != batch.len() {

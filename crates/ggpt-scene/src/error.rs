@@ -32,6 +32,10 @@ pub enum SceneError {
     /// Error from `ggpt-core` (file I/O, formats).
     #[error(transparent)]
     Core(#[from] ggpt_core::CoreError),
+    /// The caller's [`ggpt_core::Cancel`] token asked the refinement to stop (checked before
+    /// every network forward).
+    #[error("cancelled")]
+    Cancelled,
 }
 
 /// Returns the first non-finite entry of `values` as a [`SceneError::NonFinite`].

@@ -156,9 +156,199 @@ pub fn generic_to_ff(
     Ok((m, sc))
 }
 
+/// What a raw dense-matcher output holds (`sfm.md` §2.3, `docs/sfm.md` raw-matcher layout).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RawKind {
+    /// RoMa v1 / v2: a warp `[.., Hm, Wm, 2]` of normalised edge coordinates (`-1` / `+1` =
+    /// image edges) and a certainty (overlap) `[.., Hm, Wm]` ([`roma_to_ff`]).
+    RomaWarp,
+    /// UFM: a flow `[.., 2, Ho, Wo]` in output pixels and a covisibility `[.., Ho, Wo]`
+    /// ([`ufm_to_ff`]).
+    UfmFlow,
+    /// A generic matcher: a warp `[.., Hm, Wm, 2]` in matcher-pixel coordinates and a score
+    /// `[.., Hm, Wm]` ([`generic_to_ff`]).
+    PixelWarp,
+    /// Already at ff resolution in ff pixels (pixel-centre convention): matches
+    /// `[.., h, w, 2]` or `[.., h*w, 2]` and scores `[.., h, w]` or `[.., h*w]` (the official
+    /// `pred_matches` / `pred_scores`).
+    FfPixels,
+}
+
+/// Order of the two leading view axes of a pair array.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PairLayout {
+    /// `[s, t]`: entry `[s, t]` matches the pixels of view `s` into view `t` (the raw output
+    /// of the official `match_dense`, RoMa's `warp_AB` stacked by `(A, B)`).
+    SourceTarget,
+    /// `[t, s]`: the official `match_images` output (`pred_matches`) and `MatchSet`'s layout.
+    TargetSource,
+}
+
+/// One raw dense-matcher output for all ordered view pairs: `primary` (warp / flow / matches)
+/// and `score`, each with its shape, the two leading axes being the views `[N, N]` in `layout`
+/// order. Diagonal entries are ignored.
+#[derive(Debug, Clone, Copy)]
+pub struct RawMatches<'a> {
+    /// What the arrays hold.
+    pub kind: RawKind,
+    /// Order of the view axes.
+    pub layout: PairLayout,
+    /// Warp / flow / matches values (C order).
+    pub primary: &'a [f32],
+    /// Shape of `primary`.
+    pub primary_shape: &'a [usize],
+    /// Certainty / covisibility / score values (C order).
+    pub score: &'a [f32],
+    /// Shape of `score`.
+    pub score_shape: &'a [usize],
+}
+
+impl RawMatches<'_> {
+    /// Converts to ff pixels for a scene of `n` views at ff resolution `h x w`: the `MatchSet`
+    /// layout `[t, s, k]` (`pred_matches [N, N, h*w, 2]`, `pred_scores [N, N, h*w]`; no cycle
+    /// error: the SfM stage computes it). `what` names the arrays in errors (a file and key, or
+    /// the Python argument).
+    pub fn to_ff(&self, n: usize, h: usize, w: usize, what: &str) -> Result<(Vec<f32>, Vec<f32>)> {
+        let hw = h * w;
+        let shape_err = |expected: String| {
+            SfmError::Shape(format!(
+                "{what}: shapes {:?} / {:?}, expected {expected} (the feed-forward prediction has N={n} views at {h}x{w})",
+                self.primary_shape, self.score_shape
+            ))
+        };
+        let lead = |s: &[usize]| s.len() >= 2 && s[0] == n && s[1] == n;
+        if !lead(self.primary_shape) || !lead(self.score_shape) {
+            return Err(shape_err(format!("[N={n}, N={n}, ...] for both")));
+        }
+        let (p, sc) = (&self.primary_shape[2..], &self.score_shape[2..]);
+        // (per-pair primary length, per-pair score length, the pair's conversion)
+        type Convert<'b> = Box<dyn Fn(&[f32], &[f32]) -> Result<(Vec<f32>, Vec<f32>)> + 'b>;
+        let (pl, sl, convert): (usize, usize, Convert<'_>) = match (self.kind, p, sc) {
+            (RawKind::RomaWarp, [hm, wm, 2], [a, b]) if (a, b) == (hm, wm) => {
+                let (hm, wm) = (*hm, *wm);
+                (
+                    hm * wm * 2,
+                    hm * wm,
+                    Box::new(move |x: &[f32], y: &[f32]| roma_to_ff(x, y, hm, wm, h, w)),
+                )
+            }
+            (RawKind::PixelWarp, [hm, wm, 2], [a, b]) if (a, b) == (hm, wm) => {
+                let (hm, wm) = (*hm, *wm);
+                (
+                    hm * wm * 2,
+                    hm * wm,
+                    Box::new(move |x: &[f32], y: &[f32]| generic_to_ff(x, y, hm, wm, h, w)),
+                )
+            }
+            (RawKind::UfmFlow, [2, ho, wo], [a, b]) if (a, b) == (ho, wo) => {
+                let (ho, wo) = (*ho, *wo);
+                (
+                    2 * ho * wo,
+                    ho * wo,
+                    Box::new(move |x: &[f32], y: &[f32]| ufm_to_ff(x, y, ho, wo, h, w)),
+                )
+            }
+            (RawKind::FfPixels, pm, ps)
+                if (pm == [h, w, 2] || pm == [hw, 2]) && (ps == [h, w] || ps == [hw]) =>
+            {
+                (
+                    2 * hw,
+                    hw,
+                    Box::new(|x: &[f32], y: &[f32]| Ok((x.to_vec(), y.to_vec()))),
+                )
+            }
+            (kind, _, _) => {
+                return Err(shape_err(match kind {
+                    RawKind::RomaWarp | RawKind::PixelWarp => {
+                        "[N, N, Hm, Wm, 2] / [N, N, Hm, Wm]".into()
+                    }
+                    RawKind::UfmFlow => "[N, N, 2, Ho, Wo] / [N, N, Ho, Wo]".into(),
+                    RawKind::FfPixels => {
+                        format!("[N, N, {h}, {w}, 2] / [N, N, {h}, {w}] (or h*w = {hw} flattened)")
+                    }
+                }));
+            }
+        };
+        if self.primary.len() != n * n * pl || self.score.len() != n * n * sl {
+            return Err(SfmError::Shape(format!(
+                "{what}: {} / {} values for shapes {:?} / {:?}",
+                self.primary.len(),
+                self.score.len(),
+                self.primary_shape,
+                self.score_shape
+            )));
+        }
+        let mut matches = vec![0f32; 2 * n * n * hw];
+        let mut scores = vec![0f32; n * n * hw];
+        for s in 0..n {
+            for t in 0..n {
+                if s == t {
+                    continue;
+                }
+                let q = match self.layout {
+                    PairLayout::SourceTarget => s * n + t,
+                    PairLayout::TargetSource => t * n + s,
+                };
+                let (m, score) = convert(
+                    &self.primary[q * pl..(q + 1) * pl],
+                    &self.score[q * sl..(q + 1) * sl],
+                )?;
+                let b = (t * n + s) * hw;
+                matches[2 * b..2 * (b + hw)].copy_from_slice(&m);
+                scores[b..b + hw].copy_from_slice(&score);
+            }
+        }
+        Ok((matches, scores))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn raw_pairs_follow_their_layout_and_shapes_are_checked() {
+        // 2 views at ff 1x2, generic ff-pixel matches: pair [0 -> 1] = x + 10, [1 -> 0] = x + 20.
+        let (n, h, w) = (2, 1, 2);
+        let mut m = vec![0f32; n * n * h * w * 2];
+        let mut sc = vec![0f32; n * n * h * w];
+        for (q, add) in [(1usize, 10.0f32), (2, 20.0)] {
+            for k in 0..2 {
+                m[(q * 2 + k) * 2] = k as f32 + add;
+                sc[q * 2 + k] = add / 100.0;
+            }
+        }
+        let raw = RawMatches {
+            kind: RawKind::FfPixels,
+            layout: PairLayout::SourceTarget,
+            primary: &m,
+            primary_shape: &[2, 2, 1, 2, 2],
+            score: &sc,
+            score_shape: &[2, 2, 1, 2],
+        };
+        let (pm, ps) = raw.to_ff(n, h, w, "m").unwrap();
+        // [t=1, s=0] is the source-target pair (0, 1): +10
+        let at = |t: usize, s: usize, k: usize| pm[((t * n + s) * 2 + k) * 2];
+        assert_eq!((at(1, 0, 1), at(0, 1, 1)), (11.0, 21.0));
+        assert_eq!(ps[(n + 0) * 2], 0.1);
+        let (pm2, _) = RawMatches {
+            layout: PairLayout::TargetSource,
+            ..raw
+        }
+        .to_ff(n, h, w, "m")
+        .unwrap();
+        assert_eq!(pm2[((n + 0) * 2 + 1) * 2], 21.0);
+        let e = raw.to_ff(3, h, w, "matches[0]").unwrap_err().to_string();
+        assert!(e.contains("matches[0]") && e.contains("N=3"), "{e}");
+        let e = RawMatches {
+            kind: RawKind::UfmFlow,
+            ..raw
+        }
+        .to_ff(n, h, w, "m")
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("[N, N, 2, Ho, Wo]"), "{e}");
+    }
 
     #[test]
     fn roma_edges_map_to_pixel_edges() {

@@ -37,6 +37,10 @@ pub enum SfmError {
     /// Error from `ggpt-core` (file formats, scene validation).
     #[error(transparent)]
     Core(#[from] ggpt_core::CoreError),
+    /// The caller's [`ggpt_core::Cancel`] token asked the stage to stop (checked between SfM
+    /// steps and between BA iterations).
+    #[error("cancelled")]
+    Cancelled,
 }
 
 impl SfmError {

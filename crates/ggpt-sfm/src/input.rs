@@ -16,7 +16,7 @@ use ggpt_core::io::st::StFile;
 use ggpt_core::{Cameras, Dims, FeedForward};
 use nalgebra::{Matrix3, Matrix3x4};
 
-use crate::convert::{generic_to_ff, roma_to_ff, ufm_to_ff};
+use crate::convert::{PairLayout, RawKind, RawMatches};
 use crate::cycle::compute_cycle_errors;
 use crate::error::{Result, SfmError};
 use crate::matches::Correspondences;
@@ -292,93 +292,51 @@ pub fn read_raw_matches(f: &StFile, dims: Dims) -> Result<MatchesInput> {
     };
     for i in 0.. {
         let k = |s: &str| format!("{prefix}m{i}_{s}");
-        let mut corr = Correspondences {
-            dims,
-            matches: vec![0.0; 2 * n * n * hw],
-            scores: vec![0.0; n * n * hw],
-            cycle: vec![0.0; n * n * hw],
-        };
-        let name;
-        if f.has(&k("warp")) || f.has(&k("pixwarp")) {
-            let generic = !f.has(&k("warp"));
-            let (wk, sk) = if generic {
-                (k("pixwarp"), k("score"))
-            } else {
-                (k("warp"), k("overlap"))
-            };
-            let warp = f.f32_tensor(&wk)?;
-            let (hm, wm) = match warp.shape.as_slice() {
-                [a, b, hm, wm, 2] if *a == n && *b == n => (*hm, *wm),
-                s => {
-                    return Err(SfmError::format(
-                        &path,
-                        &wk,
-                        format!(
-                            "shape {s:?} is not [N={n}, N={n}, Hm, Wm, 2] (the images have N={n})"
-                        ),
-                    ));
-                }
-            };
-            let sc = f.f32_tensor(&sk)?;
-            f.expect_shape(&sk, &sc, &[n, n, hm, wm])?;
-            for s in 0..n {
-                for t in 0..n {
-                    if s == t {
-                        continue;
-                    }
-                    let p = s * n + t;
-                    let wslice = &warp.data[p * hm * wm * 2..(p + 1) * hm * wm * 2];
-                    let sslice = &sc.data[p * hm * wm..(p + 1) * hm * wm];
-                    let (m, score) = if generic {
-                        generic_to_ff(wslice, sslice, hm, wm, h, w)?
-                    } else {
-                        roma_to_ff(wslice, sslice, hm, wm, h, w)?
-                    };
-                    put_pair(&mut corr, t, s, &m, &score);
-                }
-            }
-            name = if generic {
-                format!("generic-{i}")
-            } else {
-                format!("roma-{i}")
-            };
+        let (kind, pk, sk, name) = if f.has(&k("warp")) {
+            (
+                RawKind::RomaWarp,
+                k("warp"),
+                k("overlap"),
+                format!("roma-{i}"),
+            )
+        } else if f.has(&k("pixwarp")) {
+            (
+                RawKind::PixelWarp,
+                k("pixwarp"),
+                k("score"),
+                format!("generic-{i}"),
+            )
         } else if f.has(&k("flow")) {
-            let flow = f.f32_tensor(&k("flow"))?;
-            let (ho, wo) = match flow.shape.as_slice() {
-                [a, b, 2, ho, wo] if *a == n && *b == n => (*ho, *wo),
-                s => {
-                    return Err(SfmError::format(
-                        &path,
-                        k("flow"),
-                        format!(
-                            "shape {s:?} is not [N={n}, N={n}, 2, Ho, Wo] (the images have N={n})"
-                        ),
-                    ));
-                }
-            };
-            let cov = f.f32_tensor(&k("covisibility"))?;
-            f.expect_shape(&k("covisibility"), &cov, &[n, n, ho, wo])?;
-            for s in 0..n {
-                for t in 0..n {
-                    if s == t {
-                        continue;
-                    }
-                    let p = s * n + t;
-                    let (m, score) = ufm_to_ff(
-                        &flow.data[p * 2 * ho * wo..(p + 1) * 2 * ho * wo],
-                        &cov.data[p * ho * wo..(p + 1) * ho * wo],
-                        ho,
-                        wo,
-                        h,
-                        w,
-                    )?;
-                    put_pair(&mut corr, t, s, &m, &score);
-                }
-            }
-            name = format!("ufm-{i}");
+            (
+                RawKind::UfmFlow,
+                k("flow"),
+                k("covisibility"),
+                format!("ufm-{i}"),
+            )
         } else {
             break;
-        }
+        };
+        let primary = f.f32_tensor(&pk)?;
+        let score = f.f32_tensor(&sk)?;
+        let raw = RawMatches {
+            kind,
+            layout: PairLayout::SourceTarget,
+            primary: &primary.data,
+            primary_shape: &primary.shape,
+            score: &score.data,
+            score_shape: &score.shape,
+        };
+        let what = format!("{pk} / {sk}");
+        let (matches, scores) = raw.to_ff(n, h, w, &what).map_err(|e| match e {
+            SfmError::Shape(m) => SfmError::format(&path, &pk, m),
+            e => e,
+        })?;
+        let mut corr = Correspondences {
+            dims,
+            matches,
+            scores,
+            cycle: vec![0.0; n * n * hw],
+        };
         corr.apply_diagonal();
         corr.sanitize();
         compute_cycle_errors(&mut corr)?;
@@ -403,13 +361,6 @@ pub fn read_raw_matches(f: &StFile, dims: Dims) -> Result<MatchesInput> {
         }
     }
     Ok(out)
-}
-
-fn put_pair(corr: &mut Correspondences, t: usize, s: usize, m: &[f32], score: &[f32]) {
-    let b = corr.idx(t, s, 0);
-    let hw = corr.dims.hw();
-    corr.matches[2 * b..2 * (b + hw)].copy_from_slice(m);
-    corr.scores[b..b + hw].copy_from_slice(score);
 }
 
 #[cfg(test)]

@@ -57,6 +57,9 @@ pub struct SfmConfig {
     pub cheirality: bool,
     /// Seed of every random choice (default 42; the stage is deterministic).
     pub seed: u64,
+    /// Stop request, checked before every step and every BA iteration (it replaces
+    /// `ba_options.cancel`): a cancelled token ends the run with [`SfmError::Cancelled`].
+    pub cancel: ggpt_core::Cancel,
 }
 
 impl SfmConfig {
@@ -79,6 +82,7 @@ impl SfmConfig {
             scatter: ScatterOptions::default(),
             cheirality: false,
             seed: 42,
+            cancel: ggpt_core::Cancel::default(),
         }
     }
 }
@@ -201,15 +205,17 @@ const STEPS: [&str; 7] = [
 /// Step timings and progress reports of one SfM run.
 struct Stages<'a> {
     progress: &'a mut dyn FnMut(Progress),
+    cancel: &'a ggpt_core::Cancel,
     timings: Vec<(String, f64)>,
     done: u64,
     t: Instant,
 }
 
 impl<'a> Stages<'a> {
-    fn new(progress: &'a mut dyn FnMut(Progress)) -> Self {
+    fn new(progress: &'a mut dyn FnMut(Progress), cancel: &'a ggpt_core::Cancel) -> Self {
         Stages {
             progress,
+            cancel,
             timings: Vec::new(),
             done: 0,
             t: Instant::now(),
@@ -219,9 +225,14 @@ impl<'a> Stages<'a> {
         let p = Progress::new(PROGRESS_STAGE, self.done, STEPS.len() as u64);
         (self.progress)(p.with_detail(detail));
     }
-    fn start(&mut self, name: &'static str) {
+    /// Reports the start of step `name`; [`SfmError::Cancelled`] when the stop was requested.
+    fn start(&mut self, name: &'static str) -> Result<()> {
+        if self.cancel.is_cancelled() {
+            return Err(SfmError::Cancelled);
+        }
         self.report(name);
         self.t = Instant::now();
+        Ok(())
     }
     fn done(&mut self, name: &str) {
         self.timings
@@ -376,9 +387,9 @@ pub fn run_sfm_correspondences_with_progress(
     let n = dims.n;
     let hw = dims.hw();
     let nt = n * hw;
-    let mut st = Stages::new(progress);
+    let mut st = Stages::new(progress, &cfg.cancel);
 
-    st.start("ensemble");
+    st.start("ensemble")?;
     let (corr, sel_idx) = ensemble(sets)?;
     let mut wins = vec![0usize; sets.len()];
     for t in 0..n {
@@ -419,14 +430,14 @@ pub fn run_sfm_correspondences_with_progress(
     }
     st.done("ensemble");
 
-    st.start("masks");
+    st.start("masks")?;
     let (m_ba, mut m_dlt) = compute_masks(&corr, &cfg.thresholds)?;
     let off_diag = |m: &[bool]| m.iter().filter(|&&b| b).count() - nt;
     let ba_mask_entries = off_diag(&m_ba);
     let dlt_mask_entries = off_diag(&m_dlt);
     st.done("masks");
 
-    st.start("track selection");
+    st.start("track selection")?;
     let (rank_owned, ranking) = match rank {
         Some(r) => {
             if r.len() != nt {
@@ -443,7 +454,7 @@ pub fn run_sfm_correspondences_with_progress(
     let ba_tracks = build_ba_tracks(&selection.track_ids(), &m_ba, &corr, &ff.points)?;
     st.done("track selection");
 
-    st.start("bundle adjustment");
+    st.start("bundle adjustment")?;
     let (cameras, ba, refined_points) = match fixed_cameras {
         Some(c) => {
             if c.cam_from_world.len() != n || c.intrinsics.len() != n {
@@ -480,7 +491,7 @@ pub fn run_sfm_correspondences_with_progress(
     };
     st.done("bundle adjustment");
 
-    st.start("epipolar filter");
+    st.start("epipolar filter")?;
     let epipolar_removed = epipolar_filter(
         &corr,
         &mut m_dlt,
@@ -489,7 +500,7 @@ pub fn run_sfm_correspondences_with_progress(
     )?;
     st.done("epipolar filter");
 
-    st.start("triangulation");
+    st.start("triangulation")?;
     let opts = DltOptions {
         max_reproj_error: cfg.thresholds.max_reproj_error,
         min_tri_angle_deg: cfg.thresholds.min_tri_angle_deg,
@@ -498,7 +509,7 @@ pub fn run_sfm_correspondences_with_progress(
     let dlt = triangulate_tracks(&corr, &m_dlt, &cameras, &opts)?;
     st.done("triangulation");
 
-    st.start("scatter");
+    st.start("scatter")?;
     let sc: ScatterResult = scatter(&corr, &m_dlt, &dlt, &cfg.scatter)?;
     st.done("scatter");
 
@@ -642,7 +653,11 @@ fn run_ba(ff: &FeedForward, dims: Dims, tracks: &BaTracks, cfg: &SfmConfig) -> R
         return Ok((initial_cameras(ff, dims), summary, None));
     }
     let problem = ba_problem(ff, dims, tracks, cfg);
-    let report = bundle_adjust(&problem, &cfg.ba_options)?;
+    let options = BaOptions {
+        cancel: cfg.cancel.clone(),
+        ..cfg.ba_options.clone()
+    };
+    let report = bundle_adjust(&problem, &options)?;
     summary.initial_cost = report.initial_cost;
     summary.final_cost = report.final_cost;
     summary.iterations = report.iterations;

@@ -1,9 +1,11 @@
-//! Step-by-step checks against the `sfm_small` fixture (official GGPT code + pycolmap).
+//! Step-by-step checks against the SfM fixtures (official GGPT code + pycolmap): `sfm_small`
+//! (principal point at the image centre) and `sfm_native_seed3` (VGGT's native principal point
+//! `(w/2, h/2)`). Every check runs on both (module per fixture at the end).
 #![allow(clippy::unwrap_used)] // tests unwrap: a failure is the test failing
 
 mod common;
 
-use common::{max_abs_diff, open};
+use common::{Fx, SFM_NATIVE, SFM_SMALL, max_abs_diff, open_set};
 use ggpt_sfm::cycle::compute_cycle_errors;
 use ggpt_sfm::dlt::{DltOptions, DltStatus, triangulate_tracks};
 use ggpt_sfm::ensemble::ensemble;
@@ -14,16 +16,35 @@ use ggpt_sfm::matches::Correspondences;
 use ggpt_sfm::scatter::{ScatterOptions, observation_targets, scatter};
 use ggpt_sfm::tracks::{build_ba_tracks, select_ba_tracks};
 
-fn thresholds() -> Thresholds {
+/// What differs between the fixtures: `mintrack_per_view` (`config/ba_mintrack_per_view`), the
+/// DLT track counts after each filter and the observations clamped by the scatter (README).
+struct Case {
+    dlt_counts: [usize; 5],
+    clamped: usize,
+}
+
+const SMALL: Case = Case {
+    dlt_counts: [7782, 7782, 7595, 7415, 7415],
+    clamped: 1,
+};
+
+const NATIVE: Case = Case {
+    dlt_counts: [12510, 12510, 12293, 12269, 12269],
+    clamped: 14,
+};
+
+fn mintrack(fx: &Fx) -> usize {
+    fx.f64("config/ba_mintrack_per_view")[0] as usize
+}
+
+fn thresholds(fx: &Fx) -> Thresholds {
     let mut t = Thresholds::preset(Preset::Benchmark);
-    t.mintrack_per_view = 64;
+    t.mintrack_per_view = mintrack(fx);
     t
 }
 
 /// (a) raw matcher outputs -> ff pixels, scores, cycle errors (`cycle/m{0,1}/*`).
-#[test]
-fn cycle_from_raw_matcher_outputs() {
-    let fx = open();
+fn cycle_from_raw_matcher_outputs(fx: &Fx, _case: &Case) {
     let raw = read_raw_matches(&fx.inputs, fx.dims).unwrap();
     assert_eq!(raw.sets.len(), 2);
     for m in 0..2 {
@@ -57,9 +78,7 @@ fn cycle_from_raw_matcher_outputs() {
 }
 
 /// (b) ensembling, exact.
-#[test]
-fn ensemble_exact() {
-    let fx = open();
+fn ensemble_exact(fx: &Fx, _case: &Case) {
     let (n, hw) = (fx.dims.n, fx.dims.hw());
     let (out, sel) = ensemble(&[fx.cycle_set(0), fx.cycle_set(1)]).unwrap();
     let want_sel =
@@ -76,10 +95,8 @@ fn ensemble_exact() {
 }
 
 /// (c) masks, exact (f32 strict comparisons).
-#[test]
-fn masks_exact() {
-    let fx = open();
-    let (ba, dlt) = compute_masks(&fx.ensembled(), &thresholds()).unwrap();
+fn masks_exact(fx: &Fx, _case: &Case) {
+    let (ba, dlt) = compute_masks(&fx.ensembled(), &thresholds(fx)).unwrap();
     let want_ba = fx.bool("masks/M_ba");
     let want_dlt = fx.bool("masks/M_dlt");
     assert_eq!(
@@ -95,13 +112,11 @@ fn masks_exact() {
 }
 
 /// (d) greedy track selection with `sp_scores`, and (e) the BA problem layout.
-#[test]
-fn tracks_and_ba_problem_exact() {
-    let fx = open();
+fn tracks_and_ba_problem_exact(fx: &Fx, _case: &Case) {
     let (n, hw) = (fx.dims.n, fx.dims.hw());
     let m_ba = fx.bool("masks/M_ba");
     let rank = fx.f32("match/sp_scores");
-    let sel = select_ba_tracks(&m_ba, n, hw, &rank, 64).unwrap();
+    let sel = select_ba_tracks(&m_ba, n, hw, &rank, mintrack(fx)).unwrap();
     let as_i64 = |v: &[usize]| v.iter().map(|&x| x as i64).collect::<Vec<_>>();
     assert_eq!(as_i64(&sel.selected_order), fx.i64("tracks/selected_order"));
     assert_eq!(as_i64(&sel.selected_view), fx.i64("tracks/selected_view"));
@@ -164,9 +179,7 @@ fn tracks_and_ba_problem_exact() {
 }
 
 /// (f) epipolar filter with the recorded BA cameras.
-#[test]
-fn epipolar_with_recorded_cameras() {
-    let fx = open();
+fn epipolar_with_recorded_cameras(fx: &Fx, _case: &Case) {
     let (n, hw) = (fx.dims.n, fx.dims.hw());
     let corr = fx.ensembled();
     let cams = fx.ba_out_cameras();
@@ -222,9 +235,7 @@ fn epipolar_with_recorded_cameras() {
 }
 
 /// (g) DLT with the recorded visibility and cameras; (h) scatter.
-#[test]
-fn dlt_and_scatter_with_recorded_cameras() {
-    let fx = open();
+fn dlt_and_scatter_with_recorded_cameras(fx: &Fx, case: &Case) {
     let nt = fx.dims.pixels();
     let corr = fx.ensembled();
     let cams = fx.ba_out_cameras();
@@ -346,7 +357,7 @@ fn dlt_and_scatter_with_recorded_cameras() {
         .map(|t| t.track as i64)
         .collect();
     assert_eq!(kept, fx.steps.i64_tensor("dlt/track_ids").unwrap().data);
-    assert_eq!(out.counts(), [7782, 7782, 7595, 7415, 7415]);
+    assert_eq!(out.counts(), case.dlt_counts);
 
     // (h) scatter
     let targets = observation_targets(&corr, &vis, &out, &ScatterOptions::default()).unwrap();
@@ -360,7 +371,7 @@ fn dlt_and_scatter_with_recorded_cameras() {
         "scatter/index1d"
     );
     let sc = scatter(&corr, &vis, &out, &ScatterOptions::default()).unwrap();
-    assert_eq!(sc.clamped, 1);
+    assert_eq!(sc.clamped, case.clamped);
     let count: Vec<f32> = sc.count.iter().map(|&c| c as f32).collect();
     assert_eq!(count, fx.f32("scatter/count"));
     assert_eq!(sc.mask, fx.bool("scatter/point_masks"));
@@ -377,10 +388,8 @@ fn dlt_and_scatter_with_recorded_cameras() {
 
 /// (h) scatter of the recorded DLT points: masks exact, points within ~1 ulp (f64 accumulation
 /// vs the official f32 sums).
-#[test]
-fn scatter_of_recorded_points_ulp() {
+fn scatter_of_recorded_points_ulp(fx: &Fx, _case: &Case) {
     use ggpt_sfm::dlt::{DltOutput, DltTrack};
-    let fx = open();
     let corr = fx.ensembled();
     let vis = fx.bool("epipolar/M_dlt");
     let remaining = fx.bool("dlt/remaining_tracks");
@@ -437,3 +446,42 @@ fn scatter_of_recorded_points_ulp() {
         );
     }
 }
+
+/// One test module per fixture, each running every check above.
+macro_rules! on_fixture {
+    ($module:ident, $set:expr, $case:expr) => {
+        mod $module {
+            #[test]
+            fn cycle_from_raw_matcher_outputs() {
+                super::cycle_from_raw_matcher_outputs(&super::open_set($set), &$case);
+            }
+            #[test]
+            fn ensemble_exact() {
+                super::ensemble_exact(&super::open_set($set), &$case);
+            }
+            #[test]
+            fn masks_exact() {
+                super::masks_exact(&super::open_set($set), &$case);
+            }
+            #[test]
+            fn tracks_and_ba_problem_exact() {
+                super::tracks_and_ba_problem_exact(&super::open_set($set), &$case);
+            }
+            #[test]
+            fn epipolar_with_recorded_cameras() {
+                super::epipolar_with_recorded_cameras(&super::open_set($set), &$case);
+            }
+            #[test]
+            fn dlt_and_scatter_with_recorded_cameras() {
+                super::dlt_and_scatter_with_recorded_cameras(&super::open_set($set), &$case);
+            }
+            #[test]
+            fn scatter_of_recorded_points_ulp() {
+                super::scatter_of_recorded_points_ulp(&super::open_set($set), &$case);
+            }
+        }
+    };
+}
+
+on_fixture!(sfm_small, super::SFM_SMALL, super::SMALL);
+on_fixture!(sfm_native_seed3, super::SFM_NATIVE, super::NATIVE);

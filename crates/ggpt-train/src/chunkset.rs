@@ -452,6 +452,9 @@ fn shard_error(path: &Path, e: CoreError) -> TrainError {
     let message = match e {
         CoreError::Format { key, message, .. } if key.is_empty() => message,
         CoreError::Format { key, message, .. } => format!("tensor '{key}': {message}"),
+        CoreError::NonFinite {
+            key, index, value, ..
+        } => format!("tensor '{key}': non-finite value {value} at flat index {index}"),
         other => other.to_string(),
     };
     TrainError::Shard {

@@ -15,20 +15,17 @@
 //! `K` `[N,3,3]`, `points` f32, `mask` bool, `camera_success` / `points_success` 0-d bool
 //! (`dlt_count` / `dlt_reproj` are accepted and not kept). Unknown npz keys are ignored.
 
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use nalgebra::{Matrix3, Matrix3x4};
-
+use crate::io::arrays::NamedArrays;
+use crate::io::feedforward::{FfFormat, FfReadOptions, read_feed_forward_file};
 use crate::io::matches::read_matches;
-use crate::io::npy::{NpyArray, NpyData, read_npz};
+use crate::io::npy::{NpyArray, NpyData};
 use crate::io::official::{dir_name, read_ff_outputs_bin, read_gt_bin, read_sfm_dlt_outputs_bin};
 use crate::resize::{BilinearRounding, resize_bilinear};
 use crate::{Cameras, CoreError, Dims, FeedForward, Result, Scene, SfmResult};
 
-/// Allowed distance of the ff principal point from one of the accepted conventions
-/// (`formats.md` §5.2), pixels.
-pub const PRINCIPAL_POINT_TOL: f64 = 1e-3;
+pub use crate::io::feedforward::PRINCIPAL_POINT_TOL;
 /// Accepted image file extensions (lower case).
 const IMAGE_EXTS: [&str; 3] = ["jpg", "jpeg", "png"];
 
@@ -96,58 +93,14 @@ fn read_ff_part(dir: &Path) -> Result<(FeedForward, Option<Vec<f32>>, Dims)> {
         let f = read_ff_outputs_bin(&bin)?;
         return Ok((f.to_feed_forward(), Some(f.images_ff.clone()), f.dims));
     }
-    let z = Npz::open(&npz)?;
-    let dims = match z.get("points")?.shape.as_slice() {
-        [n, h, w, 3] if *n > 0 && *h > 0 && *w > 0 => Dims {
-            n: *n,
-            h: *h,
-            w: *w,
+    let r = read_feed_forward_file(
+        &npz,
+        &FfReadOptions {
+            format: Some(FfFormat::Ggpt),
+            ..FfReadOptions::default()
         },
-        s => {
-            return Err(z.err(
-                "points",
-                format!("wrong shape {s:?}, expected [N, h, w, 3]"),
-            ));
-        }
-    };
-    let (n, h, w) = (dims.n, dims.h, dims.w);
-    let points = z.f32_exact("points", &[n, h, w, 3])?;
-    let conf = z.f32_exact("conf", &[n, h, w])?;
-    let cameras = Cameras {
-        cam_from_world: z.extrinsics("cam_from_world", n)?,
-        intrinsics: z.intrinsics("K", n)?,
-    };
-    // Accepted: the image centre ((w-1)/2, (h-1)/2) and VGGT's native (w/2, h/2) [project: the
-    // spec's §5.2 lists only the centre, but the BA keeps the given principal point, sfm.md §7.1,
-    // and VGGT's output is what real users feed].
-    let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
-    let (vx, vy) = (w as f64 / 2.0, h as f64 / 2.0);
-    for (i, k) in cameras.intrinsics.iter().enumerate() {
-        let near = |x: f64, y: f64| {
-            (k[(0, 2)] - x).abs() <= PRINCIPAL_POINT_TOL
-                && (k[(1, 2)] - y).abs() <= PRINCIPAL_POINT_TOL
-        };
-        if !near(cx, cy) && !near(vx, vy) {
-            return Err(z.err(
-                "K",
-                format!("view {i}: principal point ({}, {}) is neither the image centre ({cx}, {cy}) nor VGGT's ({vx}, {vy})", k[(0, 2)], k[(1, 2)]),
-            ));
-        }
-    }
-    let images = if z.has("images") {
-        Some(z.images("images", dims)?)
-    } else {
-        None
-    };
-    Ok((
-        FeedForward {
-            points,
-            conf,
-            cameras,
-        },
-        images,
-        dims,
-    ))
+    )?;
+    Ok((r.ff, r.images, r.dims))
 }
 
 fn read_sfm_part(dir: &Path, dims: Dims) -> Result<Option<SfmResult>> {
@@ -161,7 +114,7 @@ fn read_sfm_part(dir: &Path, dims: Dims) -> Result<Option<SfmResult>> {
         check_dims(&bin, "points", s.dims, dims)?;
         return Ok(Some(s.to_sfm_result()));
     }
-    let z = Npz::open(&npz)?;
+    let z = NamedArrays::open_npz(&npz)?;
     let (n, h, w) = (dims.n, dims.h, dims.w);
     let pshape = z.get("points")?.shape.clone();
     if pshape != [n, h, w, 3] {
@@ -252,130 +205,6 @@ fn read_image_dir(dir: &Path, dims: Dims) -> Result<Vec<f32>> {
         });
     }
     Ok(out)
-}
-
-/// An opened `.npz` with typed, validating getters (errors name the file and key).
-struct Npz {
-    path: PathBuf,
-    arrays: BTreeMap<String, NpyArray>,
-}
-
-impl Npz {
-    fn open(path: &Path) -> Result<Self> {
-        Ok(Self {
-            path: path.to_path_buf(),
-            arrays: read_npz(path)?,
-        })
-    }
-    fn err(&self, key: &str, m: impl Into<String>) -> CoreError {
-        CoreError::format(&self.path, key, m)
-    }
-    fn has(&self, key: &str) -> bool {
-        self.arrays.contains_key(key)
-    }
-    fn get(&self, key: &str) -> Result<&NpyArray> {
-        self.arrays
-            .get(key)
-            .ok_or_else(|| self.err(key, "missing array"))
-    }
-    fn shaped(&self, key: &str, shape: &[usize]) -> Result<&NpyArray> {
-        let a = self.get(key)?;
-        if a.shape != shape {
-            return Err(self.err(
-                key,
-                format!("wrong shape {:?}, expected {shape:?}", a.shape),
-            ));
-        }
-        Ok(a)
-    }
-    /// `<f4` only (point maps are stored as f32), finite.
-    fn f32_exact(&self, key: &str, shape: &[usize]) -> Result<Vec<f32>> {
-        let a = self.shaped(key, shape)?;
-        let NpyData::F32(v) = &a.data else {
-            return Err(self.err(key, format!("wrong dtype {}, expected <f4", a.data.descr())));
-        };
-        crate::io::st::check_finite_f32(&self.path, key, v)?;
-        Ok(v.clone())
-    }
-    /// `<f4` or `<f8` as f64, finite.
-    fn floats(&self, key: &str, shape: &[usize]) -> Result<Vec<f64>> {
-        let a = self.shaped(key, shape)?;
-        let v = a.to_f64().ok_or_else(|| {
-            self.err(
-                key,
-                format!("wrong dtype {}, expected <f4 or <f8", a.data.descr()),
-            )
-        })?;
-        crate::io::st::check_finite_f64(&self.path, key, &v)?;
-        Ok(v)
-    }
-    fn extrinsics(&self, key: &str, n: usize) -> Result<Vec<Matrix3x4<f64>>> {
-        let four = self.get(key)?.shape == [n, 4, 4];
-        if !four {
-            let v = self.floats(key, &[n, 3, 4])?;
-            return Ok(v.chunks_exact(12).map(Matrix3x4::from_row_slice).collect());
-        }
-        let v = self.floats(key, &[n, 4, 4])?;
-        let mut out = Vec::with_capacity(n);
-        for (i, m) in v.chunks_exact(16).enumerate() {
-            if [m[12], m[13], m[14], m[15] - 1.0]
-                .iter()
-                .any(|x| x.abs() > 1e-6)
-            {
-                return Err(self.err(key, format!("view {i}: last row is not 0 0 0 1")));
-            }
-            out.push(Matrix3x4::from_row_slice(&m[..12]));
-        }
-        Ok(out)
-    }
-    fn intrinsics(&self, key: &str, n: usize) -> Result<Vec<Matrix3<f64>>> {
-        Ok(self
-            .floats(key, &[n, 3, 3])?
-            .chunks_exact(9)
-            .map(Matrix3::from_row_slice)
-            .collect())
-    }
-    fn bools(&self, key: &str, shape: &[usize]) -> Result<Vec<bool>> {
-        let a = self.shaped(key, shape)?;
-        match &a.data {
-            NpyData::Bool(v) => Ok(v.clone()),
-            d => Err(self.err(key, format!("wrong dtype {}, expected |b1", d.descr()))),
-        }
-    }
-    fn scalar_bool(&self, key: &str) -> Result<bool> {
-        let a = self.get(key)?;
-        match (&a.data, a.shape.iter().product::<usize>()) {
-            (NpyData::Bool(v), 1) => v.first().copied().ok_or_else(|| self.err(key, "empty")),
-            _ => Err(self.err(
-                key,
-                format!(
-                    "expected a bool scalar, found {} {:?}",
-                    a.data.descr(),
-                    a.shape
-                ),
-            )),
-        }
-    }
-    /// `[N,h,w,3]` u8 (÷255) or f32 in [0, 1].
-    fn images(&self, key: &str, d: Dims) -> Result<Vec<f32>> {
-        let a = self.shaped(key, &[d.n, d.h, d.w, 3])?;
-        match &a.data {
-            NpyData::U8(v) => Ok(v.iter().map(|&b| f32::from(b) / 255.0).collect()),
-            NpyData::F32(v) => {
-                if let Some(i) = v.iter().position(|x| !(0.0..=1.0).contains(x)) {
-                    return Err(self.err(
-                        key,
-                        format!("value {} at flat index {i} outside [0, 1]", v[i]),
-                    ));
-                }
-                Ok(v.clone())
-            }
-            other => Err(self.err(
-                key,
-                format!("wrong dtype {}, expected |u1 or <f4", other.descr()),
-            )),
-        }
-    }
 }
 
 fn cams_arrays(c: &Cameras) -> Result<(NpyArray, NpyArray)> {

@@ -341,11 +341,12 @@ pub fn mask_values(dtype: Dtype, b: &[u8]) -> Option<Vec<bool>> {
 /// Error naming `path` and `key` at the first non-finite value.
 pub fn check_finite_f32(path: &Path, key: &str, v: &[f32]) -> Result<()> {
     match v.iter().position(|x| !x.is_finite()) {
-        Some(i) => Err(CoreError::format(
-            path,
-            key,
-            format!("non-finite value {} at flat index {i}", v[i]),
-        )),
+        Some(index) => Err(CoreError::NonFinite {
+            path: path.to_path_buf(),
+            key: key.to_string(),
+            index,
+            value: f64::from(v[index]),
+        }),
         None => Ok(()),
     }
 }
@@ -353,11 +354,12 @@ pub fn check_finite_f32(path: &Path, key: &str, v: &[f32]) -> Result<()> {
 /// Error naming `path` and `key` at the first non-finite value.
 pub fn check_finite_f64(path: &Path, key: &str, v: &[f64]) -> Result<()> {
     match v.iter().position(|x| !x.is_finite()) {
-        Some(i) => Err(CoreError::format(
-            path,
-            key,
-            format!("non-finite value {} at flat index {i}", v[i]),
-        )),
+        Some(index) => Err(CoreError::NonFinite {
+            path: path.to_path_buf(),
+            key: key.to_string(),
+            index,
+            value: v[index],
+        }),
         None => Ok(()),
     }
 }

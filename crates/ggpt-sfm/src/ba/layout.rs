@@ -7,8 +7,8 @@ use nalgebra::{Matrix3, Point3, Rotation3, Vector2, Vector3};
 
 use super::schur::Step;
 use super::{
-    BaOptions, BaProblem, CameraModel, Damping, LossFunction, MAX_POINT_COORD, MIN_DEPTH,
-    orthonormalize_rotation,
+    BaOptions, BaProblem, CameraModel, Damping, LossFunction, MAX_POINT_COORD,
+    PROJECTION_MIN_DEPTH, orthonormalize_rotation,
 };
 
 /// Observations per work chunk (chunks of whole points). The chunking depends only on the
@@ -51,6 +51,8 @@ pub(super) struct Layout {
     pub(super) parallel: bool,
     /// Marquardt damping ([`Damping::Marquardt`]); otherwise Levenberg.
     pub(super) marquardt: bool,
+    /// Active observations whose point is in front of the camera at the start.
+    pub(super) in_front: usize,
 }
 
 /// Current estimate.
@@ -108,8 +110,10 @@ pub(super) fn initial_state(problem: &BaProblem) -> State {
 pub(super) fn build_layout(problem: &BaProblem, options: &BaOptions, state: &State) -> Layout {
     let n = problem.cam_from_world.len();
     let point_ok = |p: &Point3<f64>| p.iter().all(|c| c.is_finite() && c.abs() < MAX_POINT_COORD);
-    // Active observations: usable point, finite observation, point in front of the camera.
+    // Active observations: usable point, finite observation (in front of the camera or not: one
+    // behind costs nothing until a step brings it in front, as in COLMAP).
     let mut per_point: Vec<Vec<(usize, Vector2<f64>)>> = vec![Vec::new(); problem.points.len()];
+    let mut in_front = 0;
     for o in &problem.observations {
         let (Some(p), Some(list)) = (problem.points.get(o.point), per_point.get_mut(o.point))
         else {
@@ -119,9 +123,10 @@ pub(super) fn build_layout(problem: &BaProblem, options: &BaOptions, state: &Sta
             continue;
         }
         let z = state.rot[o.view].row(2).dot(&p.coords.transpose()) + state.trans[o.view].z;
-        if z > MIN_DEPTH {
-            list.push((o.view, o.xy));
+        if z >= PROJECTION_MIN_DEPTH {
+            in_front += 1;
         }
+        list.push((o.view, o.xy));
     }
     let mut point_ids = Vec::new();
     let mut pt_start = vec![0];
@@ -192,6 +197,7 @@ pub(super) fn build_layout(problem: &BaProblem, options: &BaOptions, state: &Sta
         parallel: options.parallel && chunks.len() > 1,
         chunks,
         marquardt: options.damping == Damping::Marquardt,
+        in_front,
     }
 }
 

@@ -17,9 +17,10 @@
 //! * gauge: view 0's pose and the largest-magnitude component of `t_1` are held constant (a
 //!   two-camera gauge); when `t_1 ≈ 0` (pure rotation) the scale is left free and damping keeps it.
 //!
-//! Observations whose point is behind its camera at the start (depth `≤` [`MIN_DEPTH`]) are left
-//! out of the problem (COLMAP gives them a zero residual); a step that would move an included
-//! observation behind its camera is rejected, so the cost stays a smooth function of the unknowns.
+//! An observation whose point is not in front of its camera (depth `<` [`PROJECTION_MIN_DEPTH`])
+//! costs nothing and has zero Jacobians, at the start and at every later state: COLMAP's
+//! reprojection cost, which the official BA minimises (a step may move a point behind a camera
+//! that observes it, and back). A problem with no observation in front at the start fails.
 //! Points that are not finite or have a coordinate of magnitude `≥` [`MAX_POINT_COORD`] are left
 //! out (`sfm.md` §7.1 [project]).
 //!
@@ -43,9 +44,14 @@ use crate::error::SfmError;
 /// official: `≥ 3000` upper bound; [project]: magnitude, and non-finite points).
 pub const MAX_POINT_COORD: f64 = 3000.0;
 
-/// Smallest camera-frame depth `z` of a point for its observation to take part (`sfm.md` §7.2
-/// [project]; same units as the cameras' translations).
+/// Smallest camera-frame depth `z` of a point for [`project`] and the COLMAP export to project
+/// it (same units as the cameras' translations).
 pub const MIN_DEPTH: f64 = 1e-8;
+
+/// Smallest camera-frame depth `z` for which the BA's reprojection residual is evaluated:
+/// COLMAP's `ImgFromCam` refuses `w < ε` (f64 machine epsilon) and its reprojection cost is then
+/// zero, with zero Jacobians (`sfm.md` §7.2). The official BA runs on that cost, so ours does too.
+pub const PROJECTION_MIN_DEPTH: f64 = f64::EPSILON;
 
 /// Camera model of the bundle adjustment (`sfm.md` §7.1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -156,6 +162,9 @@ pub struct BaOptions {
     /// Use rayon for the Jacobian / Schur accumulation (default true; small problems run
     /// sequentially anyway).
     pub parallel: bool,
+    /// Checked before every LM iteration: a cancelled token ends the solve with
+    /// [`SfmError::Cancelled`] (default: never cancelled).
+    pub cancel: ggpt_core::Cancel,
 }
 
 impl Default for BaOptions {
@@ -168,6 +177,7 @@ impl Default for BaOptions {
             damping: Damping::Marquardt,
             fix_gauge: true,
             parallel: true,
+            cancel: ggpt_core::Cancel::default(),
         }
     }
 }
@@ -205,7 +215,7 @@ pub struct BaReport {
     pub final_cost: f64,
     /// LM iterations run (accepted and rejected trial steps).
     pub iterations: usize,
-    /// Observations that took part (point in front of its camera at the start, finite data).
+    /// Observations that took part (finite data; 0 when the solve did not run).
     pub num_active_observations: usize,
     /// The BA ran and produced usable cameras.
     pub success: bool,

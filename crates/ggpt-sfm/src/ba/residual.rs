@@ -9,7 +9,7 @@
 use nalgebra::{DMatrix, DVector, Matrix3, Vector2, Vector3};
 use rayon::prelude::*;
 
-use super::MIN_DEPTH;
+use super::PROJECTION_MIN_DEPTH;
 use super::layout::{Layout, State, cam_indices};
 
 /// One linearisation (Jacobians at the current state), reused for all damping trials.
@@ -27,7 +27,9 @@ pub(super) struct Linearization<const D: usize> {
 /// Residual, camera Jacobian (2 x D) and point Jacobian (2 x 3) of one observation.
 type ObsJacobian<const D: usize> = (Vector2<f64>, [[f64; D]; 2], [[f64; 3]; 2]);
 
-/// Residual and Jacobians of one observation. Returns `None` when the point is not in front.
+/// Residual and Jacobians of one observation: zero (residual and Jacobians) when the point is
+/// not in front of the camera (`z <` [`PROJECTION_MIN_DEPTH`], COLMAP's reprojection cost);
+/// `None` when its depth is not a number.
 #[inline]
 fn residual_jac<const D: usize>(
     l: &Layout,
@@ -39,8 +41,11 @@ fn residual_jac<const D: usize>(
     let r_mat = &s.rot[v];
     let q = r_mat * x;
     let p = q + s.trans[v];
-    if p.z <= MIN_DEPTH {
+    if p.z.is_nan() {
         return None;
+    }
+    if p.z < PROJECTION_MIN_DEPTH {
+        return Some((Vector2::zeros(), [[0.0; D]; 2], [[0.0; 3]; 2]));
     }
     let [fx, fy] = s.focal[l.cam_of_view[v]];
     let [cx, cy] = l.principal_point[l.cam_of_view[v]];
@@ -79,8 +84,8 @@ fn residual_jac<const D: usize>(
     Some((r, jc, jp))
 }
 
-/// Cost `½ Σ ρ(‖r‖²)` of a state; `None` if an observation is behind its camera or a value is
-/// not finite.
+/// Cost `½ Σ ρ(‖r‖²)` of a state (an observation whose point is not in front of its camera costs
+/// nothing, as in COLMAP); `None` if a value is not finite.
 pub(super) fn evaluate(l: &Layout, s: &State) -> Option<f64> {
     let chunk_cost = |&(a, b): &(usize, usize)| -> Option<f64> {
         let mut cost = 0.0;
@@ -89,8 +94,11 @@ pub(super) fn evaluate(l: &Layout, s: &State) -> Option<f64> {
             for o in l.pt_start[j]..l.pt_start[j + 1] {
                 let v = l.obs_view[o];
                 let p = s.rot[v] * x + s.trans[v];
-                if p.z.is_nan() || p.z <= MIN_DEPTH {
+                if p.z.is_nan() {
                     return None;
+                }
+                if p.z < PROJECTION_MIN_DEPTH {
+                    continue;
                 }
                 let [fx, fy] = s.focal[l.cam_of_view[v]];
                 let [cx, cy] = l.principal_point[l.cam_of_view[v]];
@@ -122,8 +130,7 @@ struct LinChunk<const D: usize> {
     gv: Vec<[f64; D]>,
 }
 
-/// Linearises the problem at `s`; `None` if an observation is behind its camera or a value is
-/// not finite.
+/// Linearises the problem at `s`; `None` if a value is not finite.
 pub(super) fn linearize<const D: usize>(l: &Layout, s: &State) -> Option<Linearization<D>> {
     let n = l.n_views;
     let chunk_lin = |&(a, b): &(usize, usize)| -> Option<LinChunk<D>> {

@@ -86,7 +86,7 @@ pub(super) fn solve(problem: &BaProblem, options: &BaOptions) -> Result<BaReport
         ..state
     };
     let n_active = layout.obs_view.len();
-    if n_active == 0 {
+    if layout.in_front == 0 {
         return Ok(fail(
             "no usable observation (none in front of its camera with a finite point)".into(),
             0.0,
@@ -98,25 +98,36 @@ pub(super) fn solve(problem: &BaProblem, options: &BaOptions) -> Result<BaReport
         1 => run::<7>(problem, options, &layout, state),
         _ => run::<8>(problem, options, &layout, state),
     };
-    Ok(match report {
-        Ok(r) => r,
-        Err((message, cost)) => fail(message, cost, n_active),
-    })
+    match report {
+        Ok(r) => Ok(r),
+        Err(Stop::Failed(message, cost)) => Ok(fail(message, cost, n_active)),
+        Err(Stop::Cancelled) => Err(SfmError::Cancelled),
+    }
 }
 
-/// The LM loop. `Err((message, initial_cost))` on failure.
+/// Why the LM loop ended without a report.
+enum Stop {
+    /// The solve failed: message and initial cost.
+    Failed(String, f64),
+    /// [`BaOptions::cancel`] was cancelled.
+    Cancelled,
+}
+
+/// The LM loop.
 fn run<const D: usize>(
     problem: &BaProblem,
     options: &BaOptions,
     l: &Layout,
     mut state: State,
-) -> Result<BaReport, (String, f64)> {
+) -> Result<BaReport, Stop> {
     let Some(initial_cost) = evaluate(l, &state) else {
-        return Err(("initial cost is not finite".into(), 0.0));
+        return Err(Stop::Failed("initial cost is not finite".into(), 0.0));
     };
     let mut cost = initial_cost;
-    let mut lin = linearize::<D>(l, &state)
-        .ok_or(("initial Jacobian is not finite".to_string(), initial_cost))?;
+    let mut lin = linearize::<D>(l, &state).ok_or(Stop::Failed(
+        "initial Jacobian is not finite".to_string(),
+        initial_cost,
+    ))?;
     let mut mu = if l.marquardt {
         options.initial_damping
     } else {
@@ -138,6 +149,9 @@ fn run<const D: usize>(
         if cost == 0.0 {
             message = "zero cost".into();
             break;
+        }
+        if options.cancel.is_cancelled() {
+            return Err(Stop::Cancelled);
         }
         iterations += 1;
         let accepted = match damped_step::<D>(l, &lin, mu) {
@@ -201,7 +215,7 @@ fn run<const D: usize>(
         }
     }
     if !solved_any {
-        return Err((
+        return Err(Stop::Failed(
             format!("the damped normal equations could not be solved ({iterations} iterations)"),
             initial_cost,
         ));

@@ -1,5 +1,5 @@
-//! Tests of the bundle adjuster: the `sfm_small` fixture (Ceres costs, converged reference
-//! cameras), synthetic problems with exact ground truth, degenerate inputs.
+//! Tests of the bundle adjuster: the `sfm_small` and `sfm_native_seed3` fixtures (Ceres costs,
+//! converged reference cameras), synthetic problems with exact ground truth, degenerate inputs.
 
 use nalgebra::{Matrix3, Matrix3x4, Point3, Vector2, Vector3};
 use safetensors::{Dtype, SafeTensors};
@@ -7,15 +7,18 @@ use safetensors::{Dtype, SafeTensors};
 use super::synthetic::{SyntheticConfig, generate};
 use super::*;
 
-const FIXTURE: &str = concat!(
-    env!("CARGO_MANIFEST_DIR"),
-    "/../../../shared/fixtures/sfm_small/steps.safetensors"
-);
+/// The `steps.safetensors` of the SfM fixture `set`.
+fn fixture_path(set: &str) -> String {
+    format!(
+        "{}/../../../shared/fixtures/{set}/steps.safetensors",
+        env!("CARGO_MANIFEST_DIR")
+    )
+}
 
 fn read_f64(st: &SafeTensors<'_>, key: &str) -> (Vec<usize>, Vec<f64>) {
     let t = st
         .tensor(key)
-        .unwrap_or_else(|e| panic!("{FIXTURE}: missing tensor {key}: {e}"));
+        .unwrap_or_else(|e| panic!("fixture: missing tensor {key}: {e}"));
     assert_eq!(t.dtype(), Dtype::F64, "{key}");
     let v = t
         .data()
@@ -28,7 +31,7 @@ fn read_f64(st: &SafeTensors<'_>, key: &str) -> (Vec<usize>, Vec<f64>) {
 fn read_i64(st: &SafeTensors<'_>, key: &str) -> Vec<i64> {
     let t = st
         .tensor(key)
-        .unwrap_or_else(|e| panic!("{FIXTURE}: missing tensor {key}: {e}"));
+        .unwrap_or_else(|e| panic!("fixture: missing tensor {key}: {e}"));
     assert_eq!(t.dtype(), Dtype::I64, "{key}");
     t.data()
         .chunks_exact(8)
@@ -41,8 +44,9 @@ fn cams_3x4(shape: &[usize], v: &[f64]) -> Vec<Matrix3x4<f64>> {
     v.chunks_exact(12).map(Matrix3x4::from_row_slice).collect()
 }
 
-/// The fixture problem of prefix `ba` or `ba_upstream`, in pixel-centre coordinates.
-fn fixture_problem(st: &SafeTensors<'_>, prefix: &str) -> BaProblem {
+/// The fixture problem of prefix `ba` or `ba_upstream`, in pixel-centre coordinates; the
+/// principal point handed to COLMAP must be `pp` (pixel-centre convention) + 0.5.
+fn fixture_problem(st: &SafeTensors<'_>, prefix: &str, pp: (f64, f64)) -> BaProblem {
     let (_, params) = read_f64(st, &format!("{prefix}/init_camera_params"));
     let (shape, cams) = read_f64(st, &format!("{prefix}/init_cam_from_world"));
     let (pshape, pts) = read_f64(st, &format!("{prefix}/init_points3D"));
@@ -53,8 +57,7 @@ fn fixture_problem(st: &SafeTensors<'_>, prefix: &str) -> BaProblem {
     let cam_from_world = cams_3x4(&shape, &cams);
     let (h, w) = (42usize, 56usize);
     // COLMAP principal point = pixel-centre principal point + 0.5.
-    assert_eq!(params[2] - 0.5, (w as f64 - 1.0) / 2.0);
-    assert_eq!(params[3] - 0.5, (h as f64 - 1.0) / 2.0);
+    assert_eq!((params[2] - 0.5, params[3] - 0.5), pp);
     let k = Matrix3::new(
         params[0],
         0.0,
@@ -114,10 +117,15 @@ fn max_relative_rotation_error(a: &[Matrix3x4<f64>], b: &[Matrix3x4<f64>]) -> f6
     worst
 }
 
-fn check_fixture(prefix: &str) {
-    let bytes = std::fs::read(FIXTURE).unwrap_or_else(|e| panic!("fixture {FIXTURE} missing: {e}"));
+/// The checks of one fixture BA (`set`, `prefix` = `ba` / `ba_upstream`) whose feed-forward
+/// principal point is `pp` (pixel-centre convention); `default_rel` and `default_deg` bound the
+/// relative cost difference and the relative rotations of the project's default options, which
+/// end in another local minimum (see part 3).
+fn check_fixture(set: &str, prefix: &str, pp: (f64, f64), default_rel: f64, default_deg: f64) {
+    let path = fixture_path(set);
+    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("fixture {path} missing: {e}"));
     let st = SafeTensors::deserialize(&bytes).unwrap();
-    let problem = fixture_problem(&st, prefix);
+    let problem = fixture_problem(&st, prefix, pp);
     let (_, init_cost) = read_f64(&st, &format!("{prefix}/initial_cost"));
     let (_, final_cost) = read_f64(&st, &format!("{prefix}/final_cost"));
     let (_, ref_cost) = read_f64(&st, &format!("{prefix}/reference_cost"));
@@ -137,6 +145,10 @@ fn check_fixture(prefix: &str) {
         init_cost[0]
     );
     let rel100 = (official.final_cost - final_cost[0]).abs() / final_cost[0];
+    eprintln!(
+        "{set} {prefix}: 100-iteration cost {} vs Ceres {} (rel {rel100:e})",
+        official.final_cost, final_cost[0]
+    );
     assert!(
         rel100 < 1e-6,
         "{prefix}: 100-iteration cost {} vs Ceres {} (rel {rel100:e})",
@@ -153,6 +165,10 @@ fn check_fixture(prefix: &str) {
     let report = bundle_adjust(&problem, &opts).unwrap();
     assert!(report.success, "{}", report.message);
     let rel = (report.final_cost - ref_cost[0]) / ref_cost[0];
+    eprintln!(
+        "{set} {prefix}: converged cost {} vs reference {} (rel {rel:e}, {} iterations)",
+        report.final_cost, ref_cost[0], report.iterations
+    );
     assert!(
         rel.abs() < 1e-6,
         "{prefix}: final cost {} vs converged reference {} (rel {rel:e}, {} iterations, {})",
@@ -176,20 +192,29 @@ fn check_fixture(prefix: &str) {
     );
     assert_eq!((k[(0, 2)], k[(1, 2)]), (27.5, 20.5));
     let drot = max_relative_rotation_error(&report.cam_from_world, &ref_cams);
+    eprintln!(
+        "{set} {prefix}: focal ({}, {}) vs ({}, {}), relative rotations within {drot:e} deg",
+        k[(0, 0)],
+        k[(1, 1)],
+        ref_params[0],
+        ref_params[1]
+    );
     assert!(
         drot < 1e-2,
         "{prefix}: relative rotations differ by {drot} deg"
     );
 
     // 3. Project defaults (two-camera gauge, function tolerance 1e-6): view 0 unchanged, a cost
-    // within 0.2 % of the reference (the Cauchy(0.1 px) problem has several local minima: with the
-    // gauge fixed the LM path ends in a neighbouring one for one 2-view point).
+    // within `default_rel` of the reference (the Cauchy(0.1 px) problem has several local minima:
+    // with the gauge fixed the LM path ends in a neighbouring one: on `sfm_small` for one 2-view
+    // point, +0.1 % and < 0.1 deg; on `sfm_native_seed3` -0.7 %, below the official optimum, and
+    // 0.2-0.45 deg: two observations there cross behind their camera on the official path).
     let default = bundle_adjust(&problem, &BaOptions::default()).unwrap();
     assert!(default.success, "{}", default.message);
     assert!((default.initial_cost - official.initial_cost).abs() < 1e-12 * official.initial_cost);
     let reld = (default.final_cost - ref_cost[0]) / ref_cost[0];
     assert!(
-        reld.abs() < 2e-3,
+        reld.abs() < default_rel,
         "{prefix}: default options final cost {} (rel {reld:e})",
         default.final_cost
     );
@@ -201,19 +226,34 @@ fn check_fixture(prefix: &str) {
     );
     let drot = max_relative_rotation_error(&default.cam_from_world, &ref_cams);
     assert!(
-        drot < 0.1,
+        drot < default_deg,
         "{prefix}: default options: relative rotations differ by {drot} deg"
     );
 }
 
+/// `sfm_small`'s feed-forward principal point: the image centre of its 56 x 42 views.
+const CENTRE: (f64, f64) = (27.5, 20.5);
+/// `sfm_native_seed3`'s: VGGT's `(w/2, h/2)`.
+const VGGT_NATIVE: (f64, f64) = (28.0, 21.0);
+
 #[test]
 fn fixture_ba_matches_ceres() {
-    check_fixture("ba");
+    check_fixture("sfm_small", "ba", CENTRE, 2e-3, 0.1);
 }
 
 #[test]
 fn fixture_ba_upstream_matches_ceres() {
-    check_fixture("ba_upstream");
+    check_fixture("sfm_small", "ba_upstream", CENTRE, 2e-3, 0.1);
+}
+
+#[test]
+fn native_fixture_ba_matches_ceres() {
+    check_fixture("sfm_native_seed3", "ba", VGGT_NATIVE, 1e-2, 0.5);
+}
+
+#[test]
+fn native_fixture_ba_upstream_matches_ceres() {
+    check_fixture("sfm_native_seed3", "ba_upstream", VGGT_NATIVE, 1e-2, 0.5);
 }
 
 #[test]

@@ -1,4 +1,5 @@
-//! Shared helpers of the `sfm_small` fixture tests (fixtures are read in place and must exist).
+//! Shared helpers of the SfM fixture tests (`sfm_small`, `sfm_native_seed3`; fixtures are read
+//! in place and must exist).
 #![allow(dead_code)]
 
 pub mod synth;
@@ -10,9 +11,21 @@ use ggpt_core::{Cameras, Dims};
 use ggpt_sfm::input::cameras_from_flat;
 use ggpt_sfm::matches::Correspondences;
 
+/// The default SfM fixture (principal point at the image centre).
+pub const SFM_SMALL: &str = "sfm_small";
+/// The SfM fixture with VGGT's native principal point `(w/2, h/2)`.
+pub const SFM_NATIVE: &str = "sfm_native_seed3";
+
+/// A file of the `sfm_small` fixture.
 pub fn fixture(name: &str) -> PathBuf {
+    fixture_in(SFM_SMALL, name)
+}
+
+/// A file of the fixture folder `set` (`SFM_SMALL`, `SFM_NATIVE`).
+pub fn fixture_in(set: &str, name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../../shared/fixtures/sfm_small")
+        .join("../../../shared/fixtures")
+        .join(set)
         .join(name)
 }
 
@@ -22,10 +35,16 @@ pub struct Fx {
     pub dims: Dims,
 }
 
+/// The `sfm_small` fixture.
 pub fn open() -> Fx {
-    let inputs = StFile::open(&fixture("inputs.safetensors"))
+    open_set(SFM_SMALL)
+}
+
+/// The fixture folder `set`.
+pub fn open_set(set: &str) -> Fx {
+    let inputs = StFile::open(&fixture_in(set, "inputs.safetensors"))
         .unwrap_or_else(|e| panic!("fixture missing: {e}"));
-    let steps = StFile::open(&fixture("steps.safetensors"))
+    let steps = StFile::open(&fixture_in(set, "steps.safetensors"))
         .unwrap_or_else(|e| panic!("fixture missing: {e}"));
     let p = inputs.f32_tensor("ff/points").unwrap();
     let dims = Dims {
@@ -41,20 +60,25 @@ pub fn open() -> Fx {
 }
 
 impl Fx {
-    pub fn f32(&self, key: &str) -> Vec<f32> {
-        let f = if key.starts_with("ff/")
-            || key.starts_with("match/")
-            || key.starts_with("gt/")
-            || key.starts_with("config/")
+    /// The file holding `key`: the inputs (`ff/`, `match/`, `gt/`, `config/`) or the steps.
+    fn file(&self, key: &str) -> &StFile {
+        if ["ff/", "match/", "gt/", "config/"]
+            .iter()
+            .any(|p| key.starts_with(p))
         {
             &self.inputs
         } else {
             &self.steps
-        };
-        f.f32_tensor(key).unwrap_or_else(|e| panic!("{e}")).data
+        }
+    }
+    pub fn f32(&self, key: &str) -> Vec<f32> {
+        self.file(key)
+            .f32_tensor(key)
+            .unwrap_or_else(|e| panic!("{e}"))
+            .data
     }
     pub fn f64(&self, key: &str) -> Vec<f64> {
-        self.steps
+        self.file(key)
             .f64_tensor(key)
             .unwrap_or_else(|e| panic!("{e}"))
             .data
@@ -265,52 +289,100 @@ pub fn check_colmap_model(dir: &std::path::Path, allow_behind: bool) -> ColmapCh
     }
 }
 
-/// Compares a model written from our BA of `sfm_small` (all 93 BA tracks written, ids `1..=93` in
-/// BA point order) with Ceres' run recorded under `prefix` (`ba` or `ba_upstream`): every written
-/// observation's reprojection error equals Ceres' final error of that observation to 5e-3 px,
-/// exactly the observations Ceres leaves above 4 px are missing, and the points equal
+/// Compares a model written from our BA (all BA tracks are candidates; the written points are
+/// numbered `1, 2, ...` in BA point order, skipping the ones left out) with Ceres' run recorded
+/// under `prefix` (`ba` or `ba_upstream`): every written observation's reprojection error equals
+/// that of Ceres' final state under the exported cameras (`out_intrinsics`) to 5e-3 px;
+/// exactly the observations Ceres leaves above 4 px or behind their camera are missing, and
+/// exactly the points left with fewer than 2 observations; the written points equal
 /// `final_points3D` to 1e-3 relative after a similarity (the free gauge drifts slightly
 /// differently). Returns (max |Δ error| px, max relative point difference).
 pub fn compare_with_ceres(fx: &Fx, chk: &ColmapCheck, prefix: &str) -> (f64, f64) {
     let want = fx.f64(&format!("{prefix}/final_points3D"));
-    let want_err = fx.f64(&format!("{prefix}/final_reproj_error"));
+    let cams = fx.f64(&format!("{prefix}/final_cam_from_world"));
+    let k_out = fx.f32(&format!("{prefix}/out_intrinsics"));
     let (obs_pid, obs_img) = (
         fx.i64(&format!("{prefix}/obs_point3D_id")),
         fx.i64(&format!("{prefix}/obs_image_id")),
     );
+    let obs_xy = fx.f64(&format!("{prefix}/obs_xy"));
     let np = want.len() / 3;
-    assert_eq!(chk.points, np, "points written vs Ceres' BA points");
+    // Ceres' final state in camera `v` of observation `o`.
+    let in_cam = |o: usize| {
+        let (v, p) = ((obs_img[o] - 1) as usize, (obs_pid[o] - 1) as usize);
+        let m = &cams[12 * v..12 * v + 12];
+        let x = &want[3 * p..3 * p + 3];
+        let row =
+            |r: usize| m[4 * r] * x[0] + m[4 * r + 1] * x[1] + m[4 * r + 2] * x[2] + m[4 * r + 3];
+        (v, [row(0), row(1), row(2)])
+    };
+    let in_front = |o: usize| in_cam(o).1[2] > 0.0;
+    // Its reprojection error with the exported cameras (`out_intrinsics`, the official K_sfm:
+    // principal point at the image centre whatever the BA used, sfm.md §7.1), as in the model.
+    let want_err: Vec<f64> = (0..obs_pid.len())
+        .map(|o| {
+            let (v, c) = in_cam(o);
+            let k = &k_out[9 * v..9 * v + 9];
+            let u = f64::from(k[0]) * c[0] / c[2] + f64::from(k[2]);
+            let w = f64::from(k[4]) * c[1] / c[2] + f64::from(k[5]);
+            ((u - (obs_xy[2 * o] - 0.5)).powi(2) + (w - (obs_xy[2 * o + 1] - 0.5)).powi(2)).sqrt()
+        })
+        .collect();
+    let kept = |o: usize| want_err[o] <= 4.0 && in_front(o);
+    let mut kept_per_point = vec![0usize; np + 1];
+    for o in 0..want_err.len() {
+        if kept(o) {
+            kept_per_point[obs_pid[o] as usize] += 1;
+        }
+    }
+    let written: Vec<usize> = (1..=np).filter(|&p| kept_per_point[p] >= 2).collect();
+    let ids: Vec<usize> = chk.model.points3d.iter().map(|p| p.id as usize).collect();
+    assert_eq!(
+        ids,
+        (1..=written.len()).collect::<Vec<_>>(),
+        "written point ids (Ceres' points with 2 usable observations: {written:?})"
+    );
     let mut ours = std::collections::HashMap::new();
     let mut k = 0;
     for p in &chk.model.points3d {
+        let ceres_id = written[p.id as usize - 1] as i64;
         for &(iid, _) in &p.track {
-            ours.insert((p.id as i64, iid as i64), chk.errors[k]);
+            ours.insert((ceres_id, iid as i64), chk.errors[k]);
             k += 1;
         }
     }
     let mut de = 0f64;
     let mut dropped = 0;
     for o in 0..want_err.len() {
+        let expected = kept(o) && kept_per_point[obs_pid[o] as usize] >= 2;
         match ours.get(&(obs_pid[o], obs_img[o])) {
-            Some(e) => de = de.max((e - want_err[o]).abs()),
-            None => {
+            Some(e) => {
                 assert!(
-                    want_err[o] > 4.0,
-                    "observation (point {}, image {}) missing, Ceres error {}",
+                    expected,
+                    "observation (point {}, image {}) written, Ceres error {} (in front: {})",
                     obs_pid[o],
                     obs_img[o],
-                    want_err[o]
+                    want_err[o],
+                    in_front(o)
+                );
+                de = de.max((e - want_err[o]).abs());
+            }
+            None => {
+                assert!(
+                    !expected,
+                    "observation (point {}, image {}) missing, Ceres error {}",
+                    obs_pid[o], obs_img[o], want_err[o]
                 );
                 dropped += 1;
             }
         }
     }
-    assert_eq!(
-        want_err.iter().filter(|&&e| e > 4.0).count(),
-        dropped,
-        "observations above 4 px"
-    );
     assert_eq!(chk.observations + dropped, want_err.len());
+    let want: Vec<f64> = written
+        .iter()
+        .flat_map(|&p| want[3 * (p - 1)..3 * p].to_vec())
+        .collect();
+    let np = written.len();
     let src: Vec<_> = chk
         .model
         .points3d
