@@ -363,7 +363,10 @@ mod tests {
         let embedded = load_model(&ModelSpec::shipped().unwrap(), &device).unwrap();
         let (a, b) = (all_values(&folder), all_values(&embedded));
         assert!(a.len() >= crate::weights::num_trainable_params(&folder));
-        assert!(a == b, "the embedded copy loads other values than the folder");
+        assert!(
+            a == b,
+            "the embedded copy loads other values than the folder"
+        );
     }
 
     /// Every float value of the model's parameters and buffers, in visiting order.
@@ -381,7 +384,6 @@ mod tests {
         m.visit(&mut c);
         c.0
     }
-
 
     fn spec_with(dir: &Path, inference_json: Option<&str>) -> Result<ModelSpec> {
         let w = dir.join(MODEL_WEIGHTS_FILE);

@@ -61,16 +61,17 @@ pub fn to_npy(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<NpyArray> {
     )))
 }
 
-/// Float values of `obj` as f32 (f64 rounded) with their shape.
+/// Float values of `obj` as f32 (f64 rounded) with their shape (one copy out of numpy).
 pub fn f32_values(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<(Vec<usize>, Vec<f32>)> {
     let a = to_npy(obj, name)?;
-    let v = a.to_f32().ok_or_else(|| {
+    let shape = a.shape.clone();
+    let v = a.into_f32().map_err(|a| {
         invalid(format!(
             "{name}: expected float32 or float64, got {}",
             a.data.descr()
         ))
     })?;
-    Ok((a.shape, v))
+    Ok((shape, v))
 }
 
 /// A `Vec` as a numpy array of `shape` (no copy of the values).

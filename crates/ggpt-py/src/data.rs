@@ -38,7 +38,8 @@ impl PyFeedForward {
 }
 
 /// The arrays of a mapping (a dict, `numpy.load("x.npz")`, ...) as [`NamedArrays`]; `origin`
-/// names them in errors. Entries that are not arrays (strings, lists of names) are skipped.
+/// names them in errors. Entries that are not arrays (strings, lists of names) are skipped; numpy
+/// arrays, torch tensors and objects with `__array__` are read.
 fn named_arrays(arrays: &Bound<'_, PyAny>, origin: &str) -> PyResult<NamedArrays> {
     let mut map = BTreeMap::new();
     let keys = arrays
@@ -48,7 +49,7 @@ fn named_arrays(arrays: &Bound<'_, PyAny>, origin: &str) -> PyResult<NamedArrays
         let k = k?;
         let key: String = k.extract()?;
         let v = arrays.get_item(&k)?;
-        if v.hasattr("shape")? && v.hasattr("dtype")? {
+        if v.hasattr("shape")? || v.hasattr("__array__")? || v.hasattr("detach")? {
             map.insert(key.clone(), to_npy(&v, &key)?);
         }
     }

@@ -8,8 +8,8 @@ use ggpt_infer::InferError;
 use ggpt_model::ModelError;
 use ggpt_scene::SceneError;
 use ggpt_sfm::SfmError;
-use pyo3::exceptions::{PyKeyboardInterrupt, PyRuntimeError};
 use pyo3::IntoPyObjectExt;
+use pyo3::exceptions::{PyKeyboardInterrupt, PyRuntimeError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 

@@ -19,7 +19,9 @@ use crate::errors::{infer_error, invalid, model_error};
 /// (built with the `wgpu` feature); `threads`: CPU threads of this model's calls (0: all cores).
 #[pyclass(module = "ggpt_rs._ggpt_rs", name = "Model", frozen)]
 pub struct PyModel {
-    pub(crate) refiner: Mutex<Refiner>,
+    /// Boxed: the refiner (its rayon pool) is 64-byte aligned, more than the Python object
+    /// allocator guarantees for a pyclass's inline contents.
+    pub(crate) refiner: Box<Mutex<Refiner>>,
     weights: String,
     shipped: bool,
     device: String,
@@ -59,7 +61,7 @@ impl PyModel {
             .map_err(infer_error)?;
         let threads = refiner.threads();
         Ok(PyModel {
-            refiner: Mutex::new(refiner),
+            refiner: Box::new(Mutex::new(refiner)),
             weights: name,
             shipped,
             device: device.to_string(),

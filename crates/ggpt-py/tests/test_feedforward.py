@@ -122,14 +122,21 @@ def test_generic_mapanything_and_pi3(ff):
     ma = ggpt.FeedForward.from_mapanything(views)
     assert ma.format == "mapanything" and np.array_equal(ma.points, ff.points)
     np.testing.assert_allclose(ma.cam_from_world, ff.cam_from_world, atol=1e-12)
-    # Pi3: world points, confidence logits, poses; intrinsics estimated from the points
-    local = camera_frame(ff.points, ff.cam_from_world).astype(np.float32)
+    # Pi3: world points, confidence logits, poses; intrinsics estimated from camera-frame points
+    # on the rays of a pinhole camera with Pi3's principal point (w/2, h/2)
+    k = ff.K.copy()
+    k[:, 0, 2], k[:, 1, 2] = ff.width / 2, ff.height / 2
+    k[:, 1, 1] = k[:, 0, 0]  # one focal per view, as the estimate
+    depth = camera_frame(ff.points, ff.cam_from_world)[..., 2]
+    identity = np.tile(np.eye(3, 4), (ff.num_views, 1, 1))
+    local = unproject(depth, k, identity).astype(np.float32)
     pi3 = ggpt.FeedForward.from_pi3(
         {"points": ff.points[None], "local_points": local[None], "conf": np.zeros_like(ff.conf)[None, ..., None], "camera_poses": poses[None]}
     )
     assert pi3.format == "pi3" and np.allclose(pi3.conf, 2.0)
     f = pi3.K[:, 0, 0]
-    assert np.all(np.abs(f - ff.K[:, 0, 0]) < 0.02 * ff.K[:, 0, 0]), (f, ff.K[:, 0, 0])
+    assert np.all(np.abs(f - k[:, 0, 0]) < 1e-3 * k[:, 0, 0]), (f, k[:, 0, 0])
+    assert np.array_equal(pi3.K[:, 0, 2], k[:, 0, 2])
     given = ggpt.FeedForward.from_pi3({"points": ff.points, "conf": ff.conf, "camera_poses": poses}, K=ff.K)
     assert np.array_equal(given.K, ff.K)
 

@@ -12,7 +12,7 @@ import ggpt_rs as ggpt
 def test_chunk_parity_with_the_official_small_model(fixtures):
     d = fixtures / "ggpt_small"
     model = ggpt.Model(d / "weights.pth", model_config=d / "manifest.json", device="cpu")
-    assert not model.shipped and model.config["enc_dim"] == 32
+    assert not model.shipped and model.config["enc_channels"] == [16, 16, 24, 32, 32]
     inputs = load_file(d / "inputs.safetensors")
     reference = load_file(d / "outputs.safetensors")
     chunks = [

@@ -40,7 +40,8 @@ def test_refine_equals_the_cli(synth_scene, cli_run, tmp_path):
     saved = out.save(tmp_path / "py", error_maps=False)
     assert (saved / "sparse" / "0").is_dir()
     py_meta = read_json(saved / "meta.json")
-    assert py_meta["files"] == meta["files"]
+    # the CLI's scene folder had ground truth (evaluation.json); refine(ff, matches) has none
+    assert py_meta["files"] == [f for f in meta["files"] if f != "evaluation.json"]
     py = load_file(saved / "refined.safetensors")
     assert set(py) == set(cli)
     for k in cli:
@@ -51,12 +52,16 @@ def test_refine_equals_the_cli(synth_scene, cli_run, tmp_path):
     assert not list(saved.rglob("*.tmp*")), "no temporary file left"
 
 
-def test_refine_from_a_scene_and_with_a_given_sfm(synth_scene, cli_run):
+def test_refine_from_a_scene_and_with_a_given_sfm(synth_scene, cli_run, tmp_path):
     scene = ggpt.read_scene(synth_scene)
     a = ggpt.refine(scene, model=ggpt.Model("shipped"), seed=42, progress=False, **CHUNK_KWARGS)
     b = ggpt.refine(scene.ff, sfm=a.sfm, seed=42, progress=False, **CHUNK_KWARGS)
     assert np.array_equal(a.points, b.points)
     assert "chunks" in repr(a)
+    # from a scene with ground truth, save writes the evaluation too, as `ggpt-infer run`
+    saved = a.save(tmp_path / "a", error_maps=False)
+    assert read_json(saved / "meta.json")["files"] == read_json(cli_run / "meta.json")["files"]
+    assert read_json(saved / "evaluation.json")["refined"]["auc_5"] == a.evaluate()["refined"]["auc_5"]
 
 
 def test_matches_layouts_agree(synth_scene):

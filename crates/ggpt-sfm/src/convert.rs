@@ -330,14 +330,14 @@ mod tests {
         // [t=1, s=0] is the source-target pair (0, 1): +10
         let at = |t: usize, s: usize, k: usize| pm[((t * n + s) * 2 + k) * 2];
         assert_eq!((at(1, 0, 1), at(0, 1, 1)), (11.0, 21.0));
-        assert_eq!(ps[(n + 0) * 2], 0.1);
+        assert_eq!(ps[n * 2], 0.1);
         let (pm2, _) = RawMatches {
             layout: PairLayout::TargetSource,
             ..raw
         }
         .to_ff(n, h, w, "m")
         .unwrap();
-        assert_eq!(pm2[((n + 0) * 2 + 1) * 2], 21.0);
+        assert_eq!(pm2[(n * 2 + 1) * 2], 21.0);
         let e = raw.to_ff(3, h, w, "matches[0]").unwrap_err().to_string();
         assert!(e.contains("matches[0]") && e.contains("N=3"), "{e}");
         let e = RawMatches {

@@ -1,6 +1,8 @@
 //! Input readers of the `ggpt-sfm` binary (also usable from code):
 //!
-//! * feed-forward outputs: the official `ff_outputs.bin`, a scene directory
+//! * feed-forward outputs: an `.npz` of VGGT / MapAnything / Pi3 outputs or the project's
+//!   `ff.npz` (`ggpt_core::io::feedforward`, layout detected from the keys), the official
+//!   `ff_outputs.bin`, a scene directory
 //!   (`ggpt_core::io::scene_dir::read_scene`), or a safetensors file with the `ff/*` keys of the
 //!   `sfm_small` fixture (`ff/images_ff`, `ff/extrinsics`, `ff/intrinsics`, `ff/points`,
 //!   `ff/points_conf`);
@@ -12,6 +14,7 @@
 
 use std::path::Path;
 
+use ggpt_core::io::feedforward::{FfReadOptions, read_feed_forward_file};
 use ggpt_core::io::st::StFile;
 use ggpt_core::{Cameras, Dims, FeedForward};
 use nalgebra::{Matrix3, Matrix3x4};
@@ -85,6 +88,32 @@ pub fn cameras_from_flat(
 
 /// Reads the feed-forward input from `path` (see the module doc for the accepted forms).
 pub fn read_ff(path: &Path) -> Result<FfInput> {
+    read_ff_with(path, &FfReadOptions::default())
+}
+
+/// [`read_ff`] with the options of the `.npz` readers (VGGT branch, Pi3 intrinsics, a forced
+/// layout; `ggpt_core::io::feedforward`).
+pub fn read_ff_with(path: &Path, opts: &FfReadOptions) -> Result<FfInput> {
+    if path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("npz"))
+    {
+        let r = read_feed_forward_file(path, opts)?;
+        let images = r.images.ok_or_else(|| {
+            SfmError::format(
+                path,
+                "images",
+                "no images in the feed-forward outputs (the SfM ranks its tracks by image texture): save them with the prediction (VGGT's `images`)",
+            )
+        })?;
+        return Ok(FfInput {
+            name: stem(path),
+            dims: r.dims,
+            images,
+            ff: r.ff,
+            image_names: Vec::new(),
+        });
+    }
     if path.is_dir() {
         let scene = ggpt_core::io::scene_dir::read_scene(path)?;
         let ff = scene.ff.ok_or_else(|| {
@@ -420,6 +449,51 @@ mod tests {
             e.contains("bad.safetensors") && e.contains("ff/images_ff"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn vggt_predictions_npz() {
+        use ggpt_core::io::npy::{NpyArray, NpyData, write_npz};
+        let dir = tempfile::tempdir().unwrap();
+        let (n, h, w) = (2usize, 3usize, 4usize);
+        let f = |shape: &[usize], v: f32| {
+            NpyArray::new(
+                shape.to_vec(),
+                NpyData::F32(vec![v; shape.iter().product()]),
+            )
+            .unwrap()
+        };
+        let mut ext = f(&[1, n, 3, 4], 0.0);
+        let mut k = f(&[1, n, 3, 3], 0.0);
+        if let (NpyData::F32(e), NpyData::F32(kk)) = (&mut ext.data, &mut k.data) {
+            for v in 0..n {
+                for i in 0..3 {
+                    e[12 * v + 5 * i] = 1.0;
+                }
+                kk[9 * v..9 * v + 9]
+                    .copy_from_slice(&[5.0, 0.0, 2.0, 0.0, 5.0, 1.5, 0.0, 0.0, 1.0]);
+            }
+        }
+        let arrays = [
+            ("extrinsic", ext),
+            ("intrinsic", k),
+            ("depth", f(&[1, n, h, w, 1], 2.0)),
+            ("depth_conf", f(&[1, n, h, w], 3.0)),
+            ("images", f(&[1, n, 3, h, w], 0.5)),
+        ];
+        let p = dir.path().join("predictions.npz");
+        let refs: Vec<(&str, &NpyArray)> = arrays.iter().map(|(k, a)| (*k, a)).collect();
+        write_npz(&p, &refs, false).unwrap();
+        let ff = read_ff(&p).unwrap();
+        assert_eq!(ff.dims, Dims { n, h, w });
+        assert_eq!(ff.name, "predictions");
+        // pixel (x=2, y=1) of view 0 sits on the principal point's ray: (0, 0, 2)
+        let i = 3 * (w + 2);
+        assert_eq!(&ff.ff.points[i..i + 3], &[0.0, -0.2, 2.0]);
+        let no_images = dir.path().join("no_images.npz");
+        write_npz(&no_images, &refs[..4], false).unwrap();
+        let e = read_ff(&no_images).unwrap_err().to_string();
+        assert!(e.contains("no_images.npz") && e.contains("[images]"), "{e}");
     }
 
     #[test]

@@ -142,33 +142,10 @@ fn end_to_end_with_our_ba_follows_ceres() {
     );
     // DLT mask and points: the official run's (`scatter/*` were made with the fork's BA
     // cameras, `ba/*`; the upstream cameras differ from them by 2.6e-3 and flip 1 pixel)
+    let (diff, errs) = common::dlt_difference(&fx, &out.result.mask, &out.result.points);
     let want_mask = fx.bool("scatter/point_masks");
-    let diff = out
-        .result
-        .mask
-        .iter()
-        .zip(&want_mask)
-        .filter(|(a, b)| a != b)
-        .count();
     eprintln!("DLT mask: {diff} of {} pixels differ", want_mask.len());
     assert!(diff * 100 <= want_mask.len(), "{diff} mask differences");
-    let want_pts = fx.f32("scatter/points");
-    let pt = |v: &[f32], p: usize| {
-        nalgebra::Point3::new(v[3 * p] as f64, v[3 * p + 1] as f64, v[3 * p + 2] as f64)
-    };
-    let common: Vec<usize> = (0..want_mask.len())
-        .filter(|&p| out.result.mask[p] && want_mask[p])
-        .collect();
-    let src: Vec<_> = common.iter().map(|&p| pt(&out.result.points, p)).collect();
-    let tgt: Vec<_> = common.iter().map(|&p| pt(&want_pts, p)).collect();
-    // the free gauge drifts: compare after a least-squares similarity
-    let sim = ggpt_core::sim3::umeyama(&src, &tgt).unwrap();
-    let mut errs: Vec<f64> = src
-        .iter()
-        .zip(&tgt)
-        .map(|(a, b)| (sim.apply(a) - b).norm())
-        .collect();
-    errs.sort_by(f64::total_cmp);
     let moved = errs.iter().filter(|&&e| e > 5e-3).count();
     eprintln!(
         "DLT points: median difference {:e}, {moved} of {} beyond 5e-3",

@@ -254,32 +254,9 @@ fn fixture_end_to_end_with_our_ba() {
         s.ba.final_cost
     );
     assert!((k[(0, 0)] - 49.5222).abs() < 0.1 && (k[(1, 1)] - 49.8875).abs() < 0.1);
+    // the two BAs fix the gauge differently: compared after a least-squares similarity
+    let (diff, errs) = common::dlt_difference(&fx, &out.result.mask, &out.result.points);
     let want_mask = fx.bool("scatter/point_masks");
-    let diff = out
-        .result
-        .mask
-        .iter()
-        .zip(&want_mask)
-        .filter(|(a, b)| a != b)
-        .count();
-    let want_pts = fx.f32("scatter/points");
-    // the two BAs fix the gauge differently: compare after a least-squares similarity
-    let pt = |v: &[f32], p: usize| {
-        nalgebra::Point3::new(v[3 * p] as f64, v[3 * p + 1] as f64, v[3 * p + 2] as f64)
-    };
-    let common: Vec<usize> = (0..want_mask.len())
-        .filter(|&p| out.result.mask[p] && want_mask[p])
-        .collect();
-    let src: Vec<_> = common.iter().map(|&p| pt(&out.result.points, p)).collect();
-    let tgt: Vec<_> = common.iter().map(|&p| pt(&want_pts, p)).collect();
-    let sim = ggpt_core::sim3::umeyama(&src, &tgt).unwrap();
-    eprintln!("gauge similarity: scale {}", sim.scale);
-    let mut errs: Vec<f32> = src
-        .iter()
-        .zip(&tgt)
-        .map(|(a, b)| (sim.apply(a) - b).norm() as f32)
-        .collect();
-    errs.sort_by(f32::total_cmp);
     let med = errs[errs.len() / 2];
     eprintln!(
         "our BA: {diff} mask differences of {}, median point difference {med:e}",

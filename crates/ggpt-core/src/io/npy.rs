@@ -102,6 +102,16 @@ impl NpyArray {
         }
     }
 
+    /// [`NpyArray::to_f32`] without a copy of `<f4` values (the array is consumed); `Err`
+    /// gives the array back when it holds no floats.
+    pub fn into_f32(self) -> std::result::Result<Vec<f32>, Self> {
+        match self.data {
+            NpyData::F32(v) => Ok(v),
+            NpyData::F64(v) => Ok(v.iter().map(|&x| x as f32).collect()),
+            _ => Err(self),
+        }
+    }
+
     /// Values as f64 when the array is `<f4` or `<f8`; `None` otherwise.
     pub fn to_f64(&self) -> Option<Vec<f64>> {
         match &self.data {

@@ -135,6 +135,31 @@ impl Fx {
     }
 }
 
+/// Our DLT point map (`mask [N hw]`, `points [N hw 3]`, our gauge) against the fixture's
+/// `scatter/*`: the number of mask differences and, over the pixels both have, the distances
+/// after a least-squares similarity (the BAs fix the gauge differently), sorted ascending.
+pub fn dlt_difference(fx: &Fx, mask: &[bool], points: &[f32]) -> (usize, Vec<f64>) {
+    let want_mask = fx.bool("scatter/point_masks");
+    let want_pts = fx.f32("scatter/points");
+    let diff = mask.iter().zip(&want_mask).filter(|(a, b)| a != b).count();
+    let pt = |v: &[f32], p: usize| {
+        nalgebra::Point3::new(v[3 * p] as f64, v[3 * p + 1] as f64, v[3 * p + 2] as f64)
+    };
+    let common: Vec<usize> = (0..want_mask.len())
+        .filter(|&p| mask[p] && want_mask[p])
+        .collect();
+    let src: Vec<_> = common.iter().map(|&p| pt(points, p)).collect();
+    let tgt: Vec<_> = common.iter().map(|&p| pt(&want_pts, p)).collect();
+    let sim = ggpt_core::sim3::umeyama(&src, &tgt).unwrap();
+    let mut errs: Vec<f64> = src
+        .iter()
+        .zip(&tgt)
+        .map(|(a, b)| (sim.apply(a) - b).norm())
+        .collect();
+    errs.sort_by(f64::total_cmp);
+    (diff, errs)
+}
+
 /// Max abs difference with its index.
 pub fn max_abs_diff(a: &[f32], b: &[f32]) -> (f32, usize) {
     assert_eq!(a.len(), b.len(), "length mismatch");
