@@ -15,6 +15,7 @@ pub mod demo;
 pub mod engine;
 pub mod error;
 pub mod error_maps;
+pub mod inputs;
 pub mod pipeline;
 pub mod refiner;
 pub mod rss;

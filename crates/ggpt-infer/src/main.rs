@@ -15,9 +15,11 @@ use ggpt_cli::{
     ChunkingArgs, DeviceArgs, ModelArgs, ProgressArgs, RegimeArg, SceneKindArg, SfmPresetArg,
     StageBars,
 };
+use ggpt_core::io::feedforward::{FfReadOptions, VggtBranch};
 use ggpt_eval::format_refinement_table as format_table;
 use ggpt_infer::Refiner;
 use ggpt_infer::demo::{DemoOptions, run_demo};
+use ggpt_infer::inputs::{original_images, scene_from_files};
 use ggpt_infer::pipeline::{RunOptions, RunReport, save_run};
 use ggpt_infer::rss::{StageLog, StageTiming};
 use ggpt_model::chunk_io::{chunk_outputs_to_bytes, read_chunk_inputs};
@@ -147,13 +149,22 @@ struct CommonArgs {
     /// Maximum number of COLMAP `points3D` (seeded uniform subset of the filtered points).
     #[arg(long, default_value_t = ggpt_scene::export::DEFAULT_COLMAP_MAX_POINTS)]
     colmap_max_points: usize,
-    /// Resolution of the COLMAP cameras: `ff` (the feed-forward resolution) or `WIDTHxHEIGHT` of
-    /// the original images (focal lengths scaled per axis, principal point at the centre).
+    /// Resolution of the COLMAP / `transforms.json` cameras: `ff` (the feed-forward resolution,
+    /// or each `--images` file's own) or `WIDTHxHEIGHT` for every view (focal lengths and the
+    /// principal point scaled per axis).
     #[arg(long, default_value = "ff", value_name = "ff|WxH")]
     colmap_resolution: String,
     /// COLMAP `SIMPLE_PINHOLE` cameras (one focal length) instead of `PINHOLE`.
     #[arg(long)]
     colmap_simple_pinhole: bool,
+    /// Keep one refined point per cube of this side (scene units, SfM frame) in the PLY files
+    /// and the COLMAP points (the most confident), before `--max-points`.
+    #[arg(long, value_name = "SIDE")]
+    voxel_size: Option<f64>,
+    /// Skip the splat-ready part beside `sparse/0`: `images/` and nerfstudio's
+    /// `transforms.json`.
+    #[arg(long)]
+    no_splat: bool,
     /// Skip the per-view PNG error maps (written only when the scene has ground truth).
     #[arg(long)]
     no_error_maps: bool,
@@ -164,12 +175,40 @@ struct CommonArgs {
     progress: ProgressArgs,
 }
 
+/// `--ff-branch`: which VGGT head gives the points.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ValueEnum)]
+enum FfBranchArg {
+    /// `depth` unprojected with the predicted cameras (the official demo's `vggt-depth`).
+    #[default]
+    Depth,
+    /// The point head `world_points` (`vggt-point`).
+    Points,
+}
+
 /// Options of `ggpt-infer run`.
 #[derive(Args, Debug)]
 struct RunArgs {
-    /// Scene directory.
-    #[arg(long)]
-    scene: PathBuf,
+    /// Scene directory (or give `--ff` and `--matches`).
+    #[arg(long, required_unless_present = "ff", conflicts_with = "ff")]
+    scene: Option<PathBuf>,
+    /// Feed-forward outputs instead of a scene: VGGT's `predictions.npz`, MapAnything / Pi3
+    /// outputs saved as `.npz`, a project `ff.npz`, the official `ff_outputs.bin` (the layout is
+    /// detected from the keys; docs/formats.md).
+    #[arg(long, requires = "matches", value_name = "FILE")]
+    ff: Option<PathBuf>,
+    /// Dense matches for `--ff`: a folder of `<matcher>.safetensors`, one such file, or the
+    /// raw-matcher layout (docs/sfm.md).
+    #[arg(long, value_name = "PATH")]
+    matches: Option<PathBuf>,
+    /// VGGT's branch of `--ff`.
+    #[arg(long, value_enum, default_value_t)]
+    ff_branch: FfBranchArg,
+    /// The original images (`.jpg`/`.jpeg`/`.png`, name order = view order): their names and
+    /// sizes go into the COLMAP model and `transforms.json` (cameras at each image's own
+    /// resolution) and they are linked into `<out>/images/`; with `--ff` also the colours when
+    /// the prediction has no images.
+    #[arg(long, value_name = "DIR")]
+    images: Option<PathBuf>,
     /// The network (`--weights` is required).
     #[command(flatten)]
     model: ModelArgs,
@@ -275,6 +314,11 @@ fn run_options(c: &CommonArgs, seed: u64, chunk_seed: Option<u64>) -> Result<Run
             simple_pinhole: c.colmap_simple_pinhole,
             ..ColmapExportOptions::default()
         }),
+        splat: !c.no_splat,
+        voxel_size: match c.voxel_size {
+            Some(v) if !(v.is_finite() && v > 0.0) => bail!("--voxel-size {v} must be positive"),
+            v => v,
+        },
         ..ExportOptions::default()
     };
     Ok(RunOptions {
@@ -355,7 +399,42 @@ fn run_run(args: RunArgs) -> Result<()> {
     let mut refiner = Refiner::load(spec, &args.common.device.device.to_string(), 0)
         .with_context(|| format!("loading weights {}", weights.display()))?;
     log.start("load scene");
-    let mut scene = load_scene(&args.scene)?;
+    let ff_read = FfReadOptions {
+        branch: match args.ff_branch {
+            FfBranchArg::Depth => VggtBranch::Depth,
+            FfBranchArg::Points => VggtBranch::Points,
+        },
+        ..FfReadOptions::default()
+    };
+    let originals = args
+        .images
+        .as_deref()
+        .map(|d| {
+            original_images(d, None)
+                .with_context(|| format!("reading the images of {}", d.display()))
+        })
+        .transpose()?;
+    let (mut scene, source) = match (&args.scene, &args.ff, &args.matches) {
+        (Some(dir), _, _) => (load_scene(dir)?, dir.clone()),
+        (None, Some(ff), Some(m)) => {
+            let scene = scene_from_files(ff, m, originals.as_ref(), &ff_read)
+                .with_context(|| format!("reading {} and {}", ff.display(), m.display()))?;
+            (scene, ff.clone())
+        }
+        _ => bail!("give --scene DIR, or --ff FILE with --matches PATH"),
+    };
+    if let (Some(o), Some(dir)) = (originals, &args.images) {
+        if o.files.len() != scene.dims.n {
+            bail!(
+                "{}: {} images, the scene has {} views",
+                dir.display(),
+                o.files.len(),
+                scene.dims.n
+            );
+        }
+        opts.export.image_sizes = Some(o.sizes);
+        opts.export.image_files = Some(o.files);
+    }
     log.finish();
     info!(
         "scene {} ({} views, {}x{})",
@@ -364,9 +443,19 @@ fn run_run(args: RunArgs) -> Result<()> {
     let mut bars = StageBars::new();
     let run = refiner
         .refine(&mut scene, &opts, &mut log, &mut |p| bars.report(p))
-        .with_context(|| format!("refining scene {}", args.scene.display()))?;
+        .with_context(|| format!("refining scene {}", source.display()))?;
     bars.finish();
-    let config = refiner.run_config("run", serde_json::json!(args.scene), &opts, &run);
+    // the scene folder, or the files it was assembled from
+    let inputs = match &args.scene {
+        Some(dir) => serde_json::json!(dir),
+        None => serde_json::json!({
+            "ff": args.ff,
+            "matches": args.matches,
+            "images": args.images,
+            "ff_branch": format!("{:?}", args.ff_branch).to_lowercase(),
+        }),
+    };
+    let config = refiner.run_config("run", inputs, &opts, &run);
     let report = save_run(
         run,
         &scene,
@@ -376,7 +465,7 @@ fn run_run(args: RunArgs) -> Result<()> {
         refiner.run_meta(&opts),
         &mut log,
     )
-    .with_context(|| format!("writing the outputs of scene {}", args.scene.display()))?;
+    .with_context(|| format!("writing the outputs of scene {}", source.display()))?;
     print_report(&report);
     Ok(())
 }

@@ -178,6 +178,8 @@ fn check_run(test: &str, report: &RunReport, opts: &RunOptions, out: &Path) {
         "sparse/0/cameras.bin",
         "sparse/0/images.bin",
         "sparse/0/points3D.bin",
+        "images/000000.png",
+        "transforms.json",
     ] {
         assert!(out.join(f).is_file(), "{f} missing");
     }

@@ -404,10 +404,11 @@ impl PyRefinedScene {
     }
 
     /// Writes the files of `ggpt-infer run --out DIR` (refined points as safetensors / npy /
-    /// PLY, COLMAP `sparse/0`, `config.json`, `meta.json`; with ground truth also
-    /// `evaluation.json` and error maps), each atomically; the options are `ggpt-infer run`'s
-    /// export flags with the same defaults. Returns the folder.
-    #[pyo3(signature = (out, *, conf_quantile = ggpt_scene::export::DEFAULT_CONF_QUANTILE, max_points = ggpt_scene::export::DEFAULT_MAX_POINTS, colmap = true, colmap_text = false, colmap_points = true, colmap_max_points = ggpt_scene::export::DEFAULT_COLMAP_MAX_POINTS, colmap_resolution = None, colmap_simple_pinhole = false, error_maps = true, error_map_max_cm = ggpt_infer::error_maps::DEFAULT_ERROR_MAP_MAX_CM))]
+    /// PLY, COLMAP `sparse/0`, `images/` and nerfstudio's `transforms.json`, `config.json`,
+    /// `meta.json`; with ground truth also `evaluation.json` and error maps), each atomically;
+    /// the options are `ggpt-infer run`'s export flags with the same defaults (`images`: the
+    /// folder of original images, as `--images DIR`). Returns the folder.
+    #[pyo3(signature = (out, *, conf_quantile = ggpt_scene::export::DEFAULT_CONF_QUANTILE, max_points = ggpt_scene::export::DEFAULT_MAX_POINTS, colmap = true, colmap_text = false, colmap_points = true, colmap_max_points = ggpt_scene::export::DEFAULT_COLMAP_MAX_POINTS, colmap_resolution = None, colmap_simple_pinhole = false, voxel_size = None, splat = true, images = None, error_maps = true, error_map_max_cm = ggpt_infer::error_maps::DEFAULT_ERROR_MAP_MAX_CM))]
     #[allow(clippy::too_many_arguments)]
     fn save(
         &self,
@@ -421,6 +422,9 @@ impl PyRefinedScene {
         colmap_max_points: usize,
         colmap_resolution: Option<(usize, usize)>,
         colmap_simple_pinhole: bool,
+        voxel_size: Option<f64>,
+        splat: bool,
+        images: Option<PathBuf>,
         error_maps: bool,
         error_map_max_cm: f64,
     ) -> PyResult<PathBuf> {
@@ -446,6 +450,14 @@ impl PyRefinedScene {
             simple_pinhole: colmap_simple_pinhole,
             ..ColmapExportOptions::default()
         });
+        opts.export.voxel_size = voxel_size;
+        opts.export.splat = splat;
+        if let Some(dir) = &images {
+            let o = ggpt_infer::inputs::original_images(dir, Some(inner.run.refined.dims.n))
+                .map_err(infer_error)?;
+            opts.export.image_sizes = Some(o.sizes);
+            opts.export.image_files = Some(o.files);
+        }
         opts.error_maps = error_maps;
         opts.error_map_max_cm = error_map_max_cm;
         let mut config = inner.config.clone();

@@ -112,13 +112,28 @@ pub fn select_points(
     max_points: usize,
     seed: u64,
 ) -> Result<(f32, Vec<u32>), SceneError> {
+    select_points_voxel(conf, None, q, max_points, seed)
+}
+
+/// [`select_points`] with the voxel filter (`Some((points [P, 3], side))`,
+/// [`crate::splat::voxel_filter`]) between the confidence filter and the subset.
+pub fn select_points_voxel(
+    conf: &[f32],
+    voxel: Option<(&[f32], f64)>,
+    q: f64,
+    max_points: usize,
+    seed: u64,
+) -> Result<(f32, Vec<u32>), SceneError> {
     let tau = confidence_threshold(conf, q)?;
-    let keep: Vec<u32> = conf
+    let mut keep: Vec<u32> = conf
         .iter()
         .enumerate()
         .filter(|(_, c)| **c >= tau)
         .map(|(p, _)| p as u32)
         .collect();
+    if let Some((points, side)) = voxel {
+        keep = crate::splat::voxel_filter(points, conf, &keep, side);
+    }
     Ok((tau, subsample(&keep, max_points, seed)))
 }
 
@@ -132,8 +147,9 @@ pub struct ColmapExportOptions {
     pub points: bool,
     /// Maximum number of `points3D` (seeded subset).
     pub max_points: usize,
-    /// Original image resolution `(H, W)` to rescale the cameras to; `None` keeps the ff
-    /// resolution (`--colmap-resolution ff`).
+    /// One image resolution `(H, W)` for every view to rescale the cameras to, over the
+    /// sizes of `ExportOptions::image_sizes` (`--colmap-resolution WxH`); `None`: those sizes,
+    /// else the ff resolution.
     pub resolution: Option<(usize, usize)>,
     /// One shared camera (as the BA used).
     pub shared_camera: bool,
@@ -172,8 +188,21 @@ pub struct ExportOptions {
     pub arrays: bool,
     /// COLMAP model (`None`: not written).
     pub colmap: Option<ColmapExportOptions>,
-    /// Image file names for COLMAP (`None`: `000000.png`, ...).
+    /// Image file names for COLMAP, `images/` and `transforms.json` (`None`: the names of
+    /// `image_files`, else `000000.png`, ...).
     pub image_names: Option<Vec<String>>,
+    /// The original image files, one per view (`--images DIR`): copied (hard-linked) into
+    /// `images/`, their names and sizes used by the COLMAP model and `transforms.json`. `None`:
+    /// the ff images are written there as PNGs, the cameras at the ff resolution.
+    pub image_files: Option<Vec<PathBuf>>,
+    /// `(H, W)` of each original image (read from `image_files` by the caller).
+    pub image_sizes: Option<Vec<(usize, usize)>>,
+    /// Write the splat-ready part with the COLMAP model: `images/` and nerfstudio's
+    /// `transforms.json` (`crate::splat`).
+    pub splat: bool,
+    /// Keep one refined point per cube of this side (scene units) in the PLY / COLMAP points,
+    /// the most confident (`--voxel-size`); `None`: no voxel filter.
+    pub voxel_size: Option<f64>,
 }
 
 impl Default for ExportOptions {
@@ -187,6 +216,10 @@ impl Default for ExportOptions {
             arrays: true,
             colmap: Some(ColmapExportOptions::default()),
             image_names: None,
+            image_files: None,
+            image_sizes: None,
+            splat: true,
+            voxel_size: None,
         }
     }
 }
@@ -250,8 +283,9 @@ fn arr(shape: Vec<usize>, data: NpyData) -> Result<NpyArray, SceneError> {
 /// (`Point3D::HasError()` is false, so COLMAP's / pycolmap's mean reprojection error skips it).
 pub const COLMAP_UNDEFINED_ERROR: f64 = -1.0;
 
-/// Builds the COLMAP model of §9.3: cameras (optionally rescaled to the original resolution),
-/// images `1..N` with their poses and no `POINTS2D`, and `points` (pixel indices of refined
+/// Builds the COLMAP model of §9.3: `cameras` at the images' resolution `sizes[v] = (H, W)`
+/// ([`crate::splat::scale_cameras`]; one shared camera only when every image has the same size),
+/// images `1..N` named `names` with their poses and no `POINTS2D`, and `points` (pixel indices of refined
 /// points) as `points3D` with colour, `ERROR` = [`COLMAP_UNDEFINED_ERROR`] and an **empty
 /// track**. A refined dense point is not triangulated from feature observations, so it has no
 /// track and no reprojection error to store ([project] deviation from the spec's one-element
@@ -261,28 +295,15 @@ pub fn colmap_model(
     refined: &RefinedScene,
     images: &[f32],
     cameras: &Cameras,
+    sizes: &[(usize, usize)],
     names: &[String],
     points: &[u32],
     opts: &ColmapExportOptions,
 ) -> Result<ColmapModel, SceneError> {
     let d = refined.dims;
-    let (hh, ww) = opts.resolution.unwrap_or((d.h, d.w));
-    let (sx, sy) = (ww as f64 / d.w as f64, hh as f64 / d.h as f64);
-    let mut scaled = cameras.clone();
-    for k in &mut scaled.intrinsics {
-        k[(0, 0)] *= sx;
-        k[(1, 1)] *= sy;
-        k[(0, 2)] = (ww as f64 - 1.0) / 2.0;
-        k[(1, 2)] = (hh as f64 - 1.0) / 2.0;
-    }
-    let mut model = ColmapModel::from_cameras(
-        &scaled,
-        hh,
-        ww,
-        names,
-        opts.simple_pinhole,
-        opts.shared_camera,
-    )?;
+    let shared = opts.shared_camera && sizes.windows(2).all(|p| p[0] == p[1]);
+    let mut model =
+        ColmapModel::from_cameras_sized(cameras, sizes, names, opts.simple_pinhole, shared)?;
     let px = d.pixels();
     for (i, &p) in points.iter().enumerate() {
         let p = p as usize;
@@ -303,6 +324,32 @@ pub fn colmap_model(
         });
     }
     Ok(model)
+}
+
+/// The image names of the export: `opts.image_names`, else the file names of
+/// `opts.image_files`, else `000000.png`, ...
+fn image_names(opts: &ExportOptions, n: usize) -> Result<Vec<String>, SceneError> {
+    let names: Vec<String> = match (&opts.image_names, &opts.image_files) {
+        (Some(v), _) => v.clone(),
+        (None, Some(files)) => files
+            .iter()
+            .map(|f| {
+                f.file_name()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .ok_or_else(|| {
+                        SceneError::Invalid(format!("image {}: no file name", f.display()))
+                    })
+            })
+            .collect::<Result<_, _>>()?,
+        (None, None) => (0..n).map(|i| format!("{i:06}.png")).collect(),
+    };
+    if names.len() != n {
+        return Err(SceneError::Invalid(format!(
+            "export: {} image names for {n} views",
+            names.len()
+        )));
+    }
+    Ok(names)
 }
 
 /// Writes every export file of §9 into `dir` (created if needed) and `config` / `meta` as
@@ -438,8 +485,16 @@ impl RunOutput {
         })?;
         check_len("export: ff points", ff.points.len(), 3 * px)?;
         let mut files = Vec::new();
-        let (tau, keep) = select_points(
+        if let Some(v) = opts.voxel_size
+            && !(v.is_finite() && v > 0.0)
+        {
+            return Err(SceneError::Invalid(format!(
+                "export: voxel size {v} must be positive"
+            )));
+        }
+        let (tau, keep) = select_points_voxel(
             &refined.conf,
+            opts.voxel_size.map(|v| (refined.points.as_slice(), v)),
             opts.conf_quantile,
             opts.max_points,
             opts.seed,
@@ -546,9 +601,18 @@ impl RunOutput {
         }
         let mut colmap_count = 0;
         if let Some(c) = &opts.colmap {
-            let names: Vec<String> = match &opts.image_names {
-                Some(v) => v.clone(),
-                None => (0..d.n).map(|i| format!("{i:06}.png")).collect(),
+            let names = image_names(opts, d.n)?;
+            let sizes: Vec<(usize, usize)> = match (c.resolution, &opts.image_sizes) {
+                (Some(r), _) => vec![r; d.n],
+                (None, Some(s)) if s.len() == d.n => s.clone(),
+                (None, Some(s)) => {
+                    return Err(SceneError::Invalid(format!(
+                        "export: {} image sizes for {} views",
+                        s.len(),
+                        d.n
+                    )));
+                }
+                (None, None) => vec![(d.h, d.w); d.n],
             };
             let pts = if c.points {
                 subsample(&keep, c.max_points, opts.seed)
@@ -556,9 +620,24 @@ impl RunOutput {
                 Vec::new()
             };
             colmap_count = pts.len();
-            let model = colmap_model(refined, &scene.images, &sfm.cameras, &names, &pts, c)?;
+            let cams = crate::splat::scale_cameras(&sfm.cameras, d, &sizes);
+            let model = colmap_model(refined, &scene.images, &cams, &sizes, &names, &pts, c)?;
             write_colmap(&self.dir.join("sparse/0"), &model, c.text)?;
             files.push("sparse/0".into());
+            if opts.splat {
+                crate::splat::write_images(
+                    &self.dir,
+                    &names,
+                    opts.image_files.as_deref(),
+                    &scene.images,
+                    d,
+                )?;
+                let ply = opts.ply.then_some("ggpt_points.ply");
+                let t = crate::splat::transforms_json(&cams, &sizes, &names, ply);
+                crate::splat::write_transforms(&self.dir, &t)?;
+                files.push(crate::splat::IMAGES_DIR.into());
+                files.push(crate::splat::TRANSFORMS_JSON.into());
+            }
         }
         let summary = ExportSummary {
             threshold: tau,

@@ -24,6 +24,7 @@ pub mod prealign;
 pub mod radius;
 pub mod record;
 pub mod roi;
+pub mod splat;
 
 #[cfg(test)]
 pub(crate) mod test_util;

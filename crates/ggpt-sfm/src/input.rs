@@ -7,7 +7,8 @@
 //!   `sfm_small` fixture (`ff/images_ff`, `ff/extrinsics`, `ff/intrinsics`, `ff/points`,
 //!   `ff/points_conf`);
 //! * matches: the raw-matcher interchange safetensors layout (`docs/sfm.md`), a
-//!   `formats.md` §5.2 `matches/<matcher>.safetensors` file, or a scene directory's matches.
+//!   `formats.md` §5.2 `matches/<matcher>.safetensors` file, a folder of such files (a scene's
+//!   `matches/`), or a scene directory's matches.
 //!
 //! All outputs are at ff resolution, ff pixels in the pixel-centre convention, cameras
 //! `cam_from_world` (OpenCV).
@@ -215,21 +216,60 @@ pub fn read_ff_with(path: &Path, opts: &FfReadOptions) -> Result<FfInput> {
 /// Shape mismatches between the matches and the images are errors naming the file and key.
 pub fn read_matches(path: &Path, dims: Dims) -> Result<MatchesInput> {
     if path.is_dir() {
-        let scene = ggpt_core::io::scene_dir::read_scene(path)?;
-        if scene.dims != dims {
-            return Err(SfmError::Shape(format!(
-                "{}: matches are for N={} h={} w={}, the feed-forward images are N={} h={} w={}",
-                path.display(),
-                scene.dims.n,
-                scene.dims.h,
-                scene.dims.w,
-                dims.n,
-                dims.h,
-                dims.w
-            )));
+        if ggpt_core::io::scene_dir::detect_layout(path).is_ok() {
+            let scene = ggpt_core::io::scene_dir::read_scene(path)?;
+            if scene.dims != dims {
+                return Err(SfmError::Shape(format!(
+                    "{}: matches are for N={} h={} w={}, the feed-forward images are N={} h={} w={}",
+                    path.display(),
+                    scene.dims.n,
+                    scene.dims.h,
+                    scene.dims.w,
+                    dims.n,
+                    dims.h,
+                    dims.w
+                )));
+            }
+            return from_match_sets(path, &scene.matches, dims);
         }
-        return from_match_sets(path, &scene.matches, dims);
+        // a matches folder (a scene's `matches/`): every `*.safetensors` in name order
+        let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(path)
+            .map_err(|e| SfmError::Io {
+                path: path.to_path_buf(),
+                source: e,
+            })?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|e| e == "safetensors"))
+            .collect();
+        files.sort();
+        if files.is_empty() {
+            return Err(SfmError::format(
+                path,
+                "matches",
+                "neither a scene folder nor a folder of matches (*.safetensors)",
+            ));
+        }
+        let mut out = MatchesInput {
+            names: Vec::new(),
+            sets: Vec::new(),
+            rank_scores: None,
+        };
+        for f in &files {
+            let m = read_match_file(f, dims)?;
+            out.names.extend(m.names);
+            out.sets.extend(m.sets);
+            if out.rank_scores.is_none() {
+                out.rank_scores = m.rank_scores;
+            }
+        }
+        return Ok(out);
     }
+    read_match_file(path, dims)
+}
+
+/// One matches file: a project `<matcher>.safetensors` (`pred_matches`, ...) or the raw-matcher
+/// interchange layout ([`read_raw_matches`]).
+fn read_match_file(path: &Path, dims: Dims) -> Result<MatchesInput> {
     let f = StFile::open(path)?;
     if f.has("pred_matches") {
         let mf = ggpt_core::io::matches::read_matches(path)?;

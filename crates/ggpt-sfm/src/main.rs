@@ -77,6 +77,11 @@ struct RunArgs {
     /// a `matches/<matcher>.safetensors` file, or a scene directory.
     #[arg(long)]
     matches: PathBuf,
+    /// The original images (`.jpg`/`.jpeg`/`.png`, name order, one per view): their file names
+    /// name the images of the COLMAP model (default `000000.png`, ...). Cameras stay at the
+    /// feed-forward resolution here; `ggpt-infer run --images` writes the splat-ready export.
+    #[arg(long, value_name = "DIR")]
+    images: Option<PathBuf>,
     /// SfM threshold preset (`docs/sfm.md`): `benchmark` (benchmark_sfm.yaml: BA 0.6 / 2 px,
     /// DLT 0.1 / 4 px, epipolar 4 px, angle 3°, reprojection 4 px, PINHOLE), `demo` (demo.yaml:
     /// BA 0.6 / 2 px, DLT 0.4 / 2 px, epipolar 2 px, angle 5°, reprojection 2 px,
@@ -232,13 +237,22 @@ fn run(args: RunArgs) -> Result<()> {
     let t0 = Instant::now();
     let reading = ggpt_cli::Bar::new("read", 1);
     reading.set_message("feed-forward outputs and matches");
-    let (ff, m) = read_inputs(&args.ff, &args.matches).with_context(|| {
+    let (mut ff, m) = read_inputs(&args.ff, &args.matches).with_context(|| {
         format!(
             "reading --ff {} / --matches {}",
             args.ff.display(),
             args.matches.display()
         )
     })?;
+    if let Some(dir) = &args.images {
+        let files = ggpt_core::io::infer_folder::list_images(dir, Some(ff.dims.n))
+            .with_context(|| format!("reading --images {}", dir.display()))?;
+        ff.image_names = files
+            .iter()
+            .map(|f| f.file_name().map(|n| n.to_string_lossy().into_owned()))
+            .collect::<Option<Vec<_>>>()
+            .with_context(|| format!("--images {}: a file without a name", dir.display()))?;
+    }
     reading.finish();
     tracing::info!(views = ff.dims.n, h = ff.dims.h, w = ff.dims.w, matchers = ?m.names, seconds = t0.elapsed().as_secs_f64(), "inputs read");
     let fixed = match &args.cameras {

@@ -308,14 +308,7 @@ fn cli_default_ba_reproduces_upstream_costs_and_errors() {
 #[test]
 fn cli_on_a_synthetic_scene_directory() {
     use ggpt_sfm::input::{read_ff, read_inputs, read_matches};
-    let cfg = ggpt_synth::SynthConfig {
-        views: 3,
-        width: 56,
-        height: 42,
-        seed: 9,
-        ..Default::default()
-    };
-    let scene = ggpt_synth::generate(&cfg).unwrap().scene;
+    let scene = common::small_synthetic_scene();
     let tmp = tempfile::tempdir().unwrap();
     let sdir = tmp.path().join("scene");
     ggpt_core::io::scene_dir::write_scene(&sdir, &scene).unwrap();
@@ -363,4 +356,59 @@ fn cli_on_a_synthetic_scene_directory() {
             .iter()
             .any(|&b| b)
     );
+}
+
+/// `ggpt-sfm run --ff predictions.npz --matches scene/matches --images DIR`: VGGT's layout, a
+/// matches folder (every matcher file in it) and the original image names in the COLMAP model;
+/// a folder with the wrong number of images is an error naming it.
+#[test]
+fn cli_on_vggt_predictions_a_matches_folder_and_named_images() {
+    let scene = common::small_synthetic_scene();
+    let tmp = tempfile::tempdir().unwrap();
+    let sdir = tmp.path().join("scene");
+    ggpt_core::io::scene_dir::write_scene(&sdir, &scene).unwrap();
+    let pred = sdir.join("predictions.npz");
+    ggpt_core::io::feedforward::write_vggt_predictions(
+        &pred,
+        scene.ff.as_ref().unwrap(),
+        &scene.images,
+        scene.dims,
+    )
+    .unwrap();
+    let m = ggpt_sfm::input::read_matches(&sdir.join("matches"), scene.dims).unwrap();
+    assert_eq!(m.sets.len(), scene.matches.len());
+    let photos = tmp.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    let names = ["a_left.png", "b_middle.png", "c_right.png"];
+    for (v, n) in names.iter().enumerate() {
+        std::fs::copy(sdir.join(format!("images/{v:06}.png")), photos.join(n)).unwrap();
+    }
+    let run = |images: &std::path::Path, out: &std::path::Path| {
+        Command::new(env!("CARGO_BIN_EXE_ggpt-sfm"))
+            .args(["run", "--no-progress", "--sfm-preset", "benchmark", "--ff"])
+            .arg(&pred)
+            .arg("--matches")
+            .arg(sdir.join("matches"))
+            .arg("--images")
+            .arg(images)
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap()
+    };
+    let out = tmp.path().join("out");
+    let o = run(&photos, &out);
+    assert!(
+        o.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let model = ggpt_core::io::colmap::read_colmap(&out.join("sparse/0")).unwrap();
+    let got: Vec<&str> = model.images.iter().map(|i| i.name.as_str()).collect();
+    assert_eq!(got, names);
+    std::fs::remove_file(photos.join(names[2])).unwrap();
+    let o = run(&photos, &tmp.path().join("out2"));
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("photos") && err.contains("2 images"), "{err}");
 }

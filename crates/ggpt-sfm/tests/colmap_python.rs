@@ -233,14 +233,7 @@ fn pycolmap_reads_a_per_view_simple_pinhole_model() {
     if !pycolmap_available("pycolmap_reads_a_per_view_simple_pinhole_model") {
         return;
     }
-    let cfg = ggpt_synth::SynthConfig {
-        views: 3,
-        width: 56,
-        height: 42,
-        seed: 9,
-        ..Default::default()
-    };
-    let scene = ggpt_synth::generate(&cfg).unwrap().scene;
+    let scene = common::small_synthetic_scene();
     let tmp = tempfile::tempdir().unwrap();
     let sdir = tmp.path().join("scene");
     ggpt_core::io::scene_dir::write_scene(&sdir, &scene).unwrap();

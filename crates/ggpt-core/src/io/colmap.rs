@@ -244,15 +244,34 @@ impl ColmapModel {
         simple: bool,
         shared: bool,
     ) -> Result<Self> {
-        if names.len() != cams.len() {
+        Self::from_cameras_sized(cams, &vec![(h, w); cams.len()], names, simple, shared)
+    }
+
+    /// [`ColmapModel::from_cameras`] with each view's image size `sizes[i] = (h, w)`; a shared
+    /// camera needs one size for all views.
+    pub fn from_cameras_sized(
+        cams: &Cameras,
+        sizes: &[(usize, usize)],
+        names: &[String],
+        simple: bool,
+        shared: bool,
+    ) -> Result<Self> {
+        if names.len() != cams.len() || sizes.len() != cams.len() {
             return Err(CoreError::Invalid(format!(
-                "{} image names for {} cameras",
+                "{} image names / {} image sizes for {} cameras",
                 names.len(),
+                sizes.len(),
                 cams.len()
             )));
         }
+        if shared && sizes.windows(2).any(|p| p[0] != p[1]) {
+            return Err(CoreError::Invalid(
+                "one shared camera for images of different sizes".into(),
+            ));
+        }
         let mut model = ColmapModel::default();
         for (i, (k, name)) in cams.intrinsics.iter().zip(names).enumerate() {
+            let (h, w) = sizes[i];
             let id =
                 u32::try_from(i + 1).map_err(|_| CoreError::Invalid("too many views".into()))?;
             if !shared || i == 0 {

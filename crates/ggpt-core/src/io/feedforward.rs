@@ -536,6 +536,74 @@ pub fn estimate_focal(local: &[f32], h: usize, w: usize) -> Option<f64> {
     (den > 0.0 && num > 0.0).then(|| num / den)
 }
 
+/// A feed-forward prediction in VGGT's `predictions.npz` layout (what VGGT's demo saves, with a
+/// leading batch of 1, float32): `extrinsic`, `intrinsic`, `world_points` +
+/// `world_points_conf` (the points and confidence), `depth` `[1, S, H, W, 1]` (their z-depth in
+/// their camera) + `depth_conf` (the confidence), `images` `[1, S, 3, H, W]`. Written by
+/// `ggpt-synth --vggt-predictions` and `scripts/export_ff.py`; read by [`read_feed_forward`].
+pub fn vggt_arrays(
+    ff: &FeedForward,
+    images: &[f32],
+    d: Dims,
+) -> Result<Vec<(&'static str, crate::io::npy::NpyArray)>> {
+    use crate::io::npy::NpyArray;
+    let (n, h, w) = (d.n, d.h, d.w);
+    let hw = h * w;
+    if ff.points.len() != 3 * n * hw || ff.conf.len() != n * hw || images.len() != 3 * n * hw {
+        return Err(CoreError::Invalid(format!(
+            "VGGT arrays: {} points / {} confidences / {} image values for N={n} h={h} w={w}",
+            ff.points.len(),
+            ff.conf.len(),
+            images.len()
+        )));
+    }
+    let mut ext = Vec::with_capacity(12 * n);
+    let mut k = Vec::with_capacity(9 * n);
+    let mut depth = Vec::with_capacity(n * hw);
+    for v in 0..n {
+        let m = &ff.cameras.cam_from_world[v];
+        ext.extend((0..12).map(|i| m[(i / 4, i % 4)] as f32));
+        let kk = &ff.cameras.intrinsics[v];
+        k.extend((0..9).map(|i| kk[(i / 3, i % 3)] as f32));
+        let (r, t) = (ff.cameras.rotation(v), ff.cameras.translation(v));
+        for p in ff.points[3 * v * hw..3 * (v + 1) * hw].chunks_exact(3) {
+            let x = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            depth.push((r * x + t).z as f32);
+        }
+    }
+    let mut chw = vec![0f32; 3 * n * hw];
+    for v in 0..n {
+        for p in 0..hw {
+            for c in 0..3 {
+                chw[(v * 3 + c) * hw + p] = images[3 * (v * hw + p) + c];
+            }
+        }
+    }
+    let f = |shape: Vec<usize>, data: Vec<f32>| NpyArray::new(shape, NpyData::F32(data));
+    Ok(vec![
+        ("extrinsic", f(vec![1, n, 3, 4], ext)?),
+        ("intrinsic", f(vec![1, n, 3, 3], k)?),
+        ("world_points", f(vec![1, n, h, w, 3], ff.points.clone())?),
+        ("world_points_conf", f(vec![1, n, h, w], ff.conf.clone())?),
+        ("depth", f(vec![1, n, h, w, 1], depth)?),
+        ("depth_conf", f(vec![1, n, h, w], ff.conf.clone())?),
+        ("images", f(vec![1, n, 3, h, w], chw)?),
+    ])
+}
+
+/// Writes [`vggt_arrays`] as an `.npz`, atomically.
+pub fn write_vggt_predictions(
+    path: &Path,
+    ff: &FeedForward,
+    images: &[f32],
+    d: Dims,
+) -> Result<()> {
+    let arrays = vggt_arrays(ff, images, d)?;
+    let refs: Vec<(&str, &crate::io::npy::NpyArray)> =
+        arrays.iter().map(|(k, a)| (*k, a)).collect();
+    crate::io::npy::write_npz(path, &refs, false)
+}
+
 /// Allowed distance of a `ff.npz` principal point from one of the accepted conventions, pixels.
 pub const PRINCIPAL_POINT_TOL: f64 = 1e-3;
 
@@ -599,7 +667,7 @@ mod tests {
     }
 
     /// A 2-view 2x3 scene: view 0 identity, view 1 shifted; depth 2 everywhere.
-    fn vggt_arrays(batch: bool) -> NamedArrays {
+    fn vggt_input(batch: bool) -> NamedArrays {
         let (n, h, w) = (2usize, 2usize, 3usize);
         let mut ext = Vec::new();
         let mut k = Vec::new();
@@ -643,7 +711,7 @@ mod tests {
     #[test]
     fn vggt_depth_branch_unprojects_with_the_cameras() {
         for batch in [false, true] {
-            let r = read_feed_forward(vggt_arrays(batch), &FfReadOptions::default()).unwrap();
+            let r = read_feed_forward(vggt_input(batch), &FfReadOptions::default()).unwrap();
             assert_eq!(r.format, FfFormat::Vggt);
             assert_eq!(r.dims, Dims { n: 2, h: 2, w: 3 });
             assert_eq!(r.ff.conf, vec![3.0; 12]);
@@ -655,7 +723,7 @@ mod tests {
             assert_eq!(img[3 + 2], 13.0 / 100.0);
         }
         let pts = read_feed_forward(
-            vggt_arrays(false),
+            vggt_input(false),
             &FfReadOptions {
                 branch: VggtBranch::Points,
                 ..Default::default()
@@ -678,21 +746,21 @@ mod tests {
             "{e}"
         );
 
-        let mut a = vggt_arrays(false);
+        let mut a = vggt_input(false);
         a.reshape_with("depth", |s| s.insert(0, 2));
         let e = read_feed_forward(a, &FfReadOptions::default())
             .unwrap_err()
             .to_string();
         assert!(e.contains("batch of 2") || e.contains("wrong shape"), "{e}");
 
-        let mut a = vggt_arrays(false);
+        let mut a = vggt_input(false);
         a.set_f32("depth_conf", 5, f32::NAN);
         let e = read_feed_forward(a, &FfReadOptions::default()).unwrap_err();
         assert!(
             matches!(&e, CoreError::NonFinite { key, index: 5, .. } if key == "depth_conf"),
             "{e}"
         );
-        let mut a = vggt_arrays(false);
+        let mut a = vggt_input(false);
         a.remove("depth");
         let e = read_feed_forward(a, &FfReadOptions::default())
             .unwrap_err()
@@ -701,6 +769,29 @@ mod tests {
             e.contains("[depth]") && e.contains("--ff-branch points"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn vggt_predictions_round_trip() {
+        let a = read_feed_forward(vggt_input(true).clone(), &FfReadOptions::default()).unwrap();
+        let images = a.images.clone().unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("predictions.npz");
+        write_vggt_predictions(&p, &a.ff, &images, a.dims).unwrap();
+        let opts = FfReadOptions {
+            branch: VggtBranch::Points,
+            ..Default::default()
+        };
+        let b = read_feed_forward_file(&p, &opts).unwrap();
+        assert_eq!(b.ff.points, a.ff.points);
+        assert_eq!(b.ff.conf, a.ff.conf);
+        assert_eq!(b.images.unwrap(), images);
+        assert_eq!(b.ff.cameras, a.ff.cameras);
+        // the depth branch re-unprojects the written depth onto the same rays
+        let c = read_feed_forward_file(&p, &FfReadOptions::default()).unwrap();
+        for (x, y) in c.ff.points.iter().zip(&a.ff.points) {
+            assert!((x - y).abs() < 1e-5, "{x} vs {y}");
+        }
     }
 
     #[test]

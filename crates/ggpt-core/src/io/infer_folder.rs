@@ -168,9 +168,14 @@ fn read_matches_dir(dir: &Path, dims: Dims) -> Result<Vec<crate::MatchSet>> {
 
 /// Decodes `images/*` (name order) and resizes each bilinearly to `h x w` when needed.
 fn read_image_dir(dir: &Path, dims: Dims) -> Result<Vec<f32>> {
-    let idir = dir.join("images");
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&idir)
-        .map_err(|e| CoreError::io(&idir, e))?
+    read_images(&list_images(&dir.join("images"), Some(dims.n))?, dims)
+}
+
+/// The image files (`.jpg`, `.jpeg`, `.png`, any case) of `dir` in name order: the view order
+/// of every reader. `n`: the number of views they must be (an error names the folder).
+pub fn list_images(dir: &Path, n: Option<usize>) -> Result<Vec<PathBuf>> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| CoreError::io(dir, e))?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| {
             p.extension().is_some_and(|e| {
@@ -179,22 +184,44 @@ fn read_image_dir(dir: &Path, dims: Dims) -> Result<Vec<f32>> {
         })
         .collect();
     files.sort();
-    if files.len() != dims.n {
+    if let Some(n) = n
+        && files.len() != n
+    {
         return Err(CoreError::format(
-            &idir,
+            dir,
             "",
             format!(
-                "{} images, the feed-forward outputs have N={}",
-                files.len(),
-                dims.n
+                "{} images (.jpg/.jpeg/.png), the feed-forward outputs have N={n}",
+                files.len()
             ),
         ));
     }
+    if files.is_empty() {
+        return Err(CoreError::format(dir, "", "no image (.jpg/.jpeg/.png)"));
+    }
+    Ok(files)
+}
+
+/// The size `(h, w)` of each image file, read from its header (no decoding).
+pub fn image_sizes(files: &[PathBuf]) -> Result<Vec<(usize, usize)>> {
+    files
+        .iter()
+        .map(|p| {
+            image::image_dimensions(p)
+                .map(|(w, h)| (h as usize, w as usize))
+                .map_err(|e| CoreError::format(p, "", format!("cannot read the image size: {e}")))
+        })
+        .collect()
+}
+
+/// Decodes `files` (one per view) as `[N, h, w, 3]` RGB in `[0, 1]`, each resized bilinearly to
+/// the ff resolution `h x w` when needed.
+pub fn read_images(files: &[PathBuf], dims: Dims) -> Result<Vec<f32>> {
     let mut out = Vec::with_capacity(3 * dims.pixels());
     for p in files {
-        let bytes = std::fs::read(&p).map_err(|e| CoreError::io(&p, e))?;
+        let bytes = std::fs::read(p).map_err(|e| CoreError::io(p, e))?;
         let img = image::load_from_memory(&bytes)
-            .map_err(|e| CoreError::format(&p, "", format!("cannot decode image: {e}")))?
+            .map_err(|e| CoreError::format(p, "", format!("cannot decode image: {e}")))?
             .to_rgb8();
         let (w, h) = (img.width() as usize, img.height() as usize);
         let f: Vec<f32> = img.as_raw().iter().map(|&b| f32::from(b) / 255.0).collect();

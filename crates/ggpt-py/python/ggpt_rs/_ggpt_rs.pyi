@@ -175,6 +175,9 @@ class RefinedScene:
         colmap_max_points: int = ...,
         colmap_resolution: Optional[tuple[int, int]] = None,
         colmap_simple_pinhole: bool = False,
+        voxel_size: Optional[float] = None,
+        splat: bool = True,
+        images: Optional[str | os.PathLike[str]] = None,
         error_maps: bool = True,
         error_map_max_cm: float = ...,
     ) -> pathlib.Path: ...

@@ -435,3 +435,15 @@ pub fn compare_with_ceres(fx: &Fx, chk: &ColmapCheck, prefix: &str) -> (f64, f64
     );
     (de, dp)
 }
+
+/// A 3-view 56 x 42 `ggpt-synth` scene (default regime, two matchers, seed 9).
+pub fn small_synthetic_scene() -> ggpt_core::Scene {
+    let cfg = ggpt_synth::SynthConfig {
+        views: 3,
+        width: 56,
+        height: 42,
+        seed: 9,
+        ..Default::default()
+    };
+    ggpt_synth::generate(&cfg).expect("synthetic scene").scene
+}

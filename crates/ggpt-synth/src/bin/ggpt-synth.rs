@@ -49,6 +49,11 @@ struct Args {
     /// safetensors file.
     #[arg(long)]
     official_safetensors: Option<PathBuf>,
+    /// Also write the feed-forward prediction as VGGT's `predictions.npz` into the scene folder
+    /// (beside `images/` and `matches/`: the images-to-splats route's inputs,
+    /// `docs/images-to-splats.md`).
+    #[arg(long)]
+    vggt_predictions: bool,
     /// Skip the dense matches.
     #[arg(long)]
     no_matches: bool,
@@ -133,6 +138,16 @@ fn main() -> Result<()> {
     }
     ggpt_core::io::scene_dir::write_scene(&args.out, scene)
         .with_context(|| format!("writing scene directory {}", args.out.display()))?;
+    if args.vggt_predictions {
+        let ff = scene
+            .ff
+            .as_ref()
+            .context("generator returned no feed-forward prediction")?;
+        let path = args.out.join("predictions.npz");
+        ggpt_core::io::feedforward::write_vggt_predictions(&path, ff, &scene.images, scene.dims)
+            .with_context(|| format!("writing {}", path.display()))?;
+        info!(path = %path.display(), "VGGT predictions written");
+    }
     let meta = serde_json::json!({
         "generator": "ggpt-synth",
         "config": cfg,
