@@ -305,8 +305,10 @@ fn save_into(
     if let Some(c) = export_opts.colmap.as_mut() {
         let k = &sfm.cameras.intrinsics;
         c.shared_camera = k.windows(2).all(|w| w[0] == w[1]);
-        if sfm_summary.is_some() {
-            c.simple_pinhole =
+        // the BA's camera model, except for the original images of a splat-ready export: their
+        // cameras are scaled per axis (PINHOLE, docs/images-to-splats.md)
+        if sfm_summary.is_some() && export_opts.image_sizes.is_none() {
+            c.simple_pinhole |=
                 SfmConfig::preset(opts.sfm_preset).camera_model == CameraModel::SimplePinhole;
         }
     }

@@ -119,12 +119,15 @@ fn predictions_matches_and_images_to_a_splat_ready_folder() {
             (kv[2] + 0.5) * SCALE as f64,
             (kv[5] + 0.5) * SCALE as f64,
         ];
+        // PINHOLE: the cameras are scaled per axis to each image's own size
+        assert_eq!(
+            c.model,
+            ggpt_core::io::colmap::ColmapCameraModel::Pinhole,
+            "camera {}",
+            c.id
+        );
         let params = &c.params;
-        let fxy = if params.len() == 3 {
-            [params[0], params[0], params[1], params[2]]
-        } else {
-            [params[0], params[1], params[2], params[3]]
-        };
+        let fxy = [params[0], params[1], params[2], params[3]];
         for (a, b) in fxy.iter().zip(&want) {
             assert!((a - b).abs() < 1e-9, "camera {}: {fxy:?} vs {want:?}", c.id);
         }
@@ -137,6 +140,8 @@ fn predictions_matches_and_images_to_a_splat_ready_folder() {
     assert_eq!(t["ply_file_path"], "ggpt_points.ply");
     let meta: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("meta.json")).unwrap()).unwrap();
+    // `scene/predictions.npz` is named after its folder, not the layout's file name
+    assert_eq!(meta["scene"], "scene", "{meta}");
     let files = meta["files"].as_array().unwrap();
     assert!(files.iter().any(|f| f == "images") && files.iter().any(|f| f == "transforms.json"));
     // independent readers: pycolmap reads the model with these names and sizes, and the frames

@@ -52,10 +52,26 @@ pub struct MatchesInput {
     pub rank_scores: Option<Vec<f32>>,
 }
 
+/// File stems that name a layout, not a scene: such a file is named after its folder.
+const GENERIC_STEMS: [&str; 4] = ["predictions", "ff", "ff_outputs", "inputs"];
+
+/// The scene name of a feed-forward file: its stem (`work/kitchen.npz` -> `kitchen`), or its
+/// folder's name for a generic stem (`kitchen/predictions.npz` -> `kitchen`).
 fn stem(path: &Path) -> String {
-    path.file_stem()
+    let s = path
+        .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "scene".into())
+        .unwrap_or_else(|| "scene".into());
+    if GENERIC_STEMS.contains(&s.as_str())
+        && let Some(dir) = path.canonicalize().ok().and_then(|p| {
+            p.parent()
+                .and_then(|d| d.file_name())
+                .map(|d| d.to_string_lossy().into_owned())
+        })
+    {
+        return dir;
+    }
+    s
 }
 
 /// Cameras from flat f32 `[N, 3, 4]` (or `[N, 4, 4]`) extrinsics and `[N, 3, 3]` intrinsics.
