@@ -18,7 +18,10 @@ Bool = npt.NDArray[np.bool_]
 
 class Model:
     """A GGPT network on a device: ``weights`` = ``"shipped"``, a ``.pth`` / ``.safetensors`` /
-    ``.bpk`` file or a model folder; ``preset``: ``released`` / ``small`` / ``tiny``."""
+    ``.bpk`` file or a model folder; ``preset``: ``released`` / ``small`` / ``tiny``.
+
+    The first ``Model`` of a process applies ``ggpt-infer``'s glibc malloc settings (freed
+    tensor buffers reused from the heap); ``GGPT_RS_MALLOC_TUNING=0`` keeps the process's own."""
 
     def __init__(
         self,
