@@ -542,7 +542,9 @@ mod tests {
         write_npz(&p, &refs, false).unwrap();
         let ff = read_ff(&p).unwrap();
         assert_eq!(ff.dims, Dims { n, h, w });
-        assert_eq!(ff.name, "predictions");
+        // a generic file name: the scene is named after the folder
+        let folder = dir.path().canonicalize().unwrap();
+        assert_eq!(ff.name, folder.file_name().unwrap().to_string_lossy());
         // pixel (x=2, y=1) of view 0 sits on the principal point's ray: (0, 0, 2)
         let i = 3 * (w + 2);
         assert_eq!(&ff.ff.points[i..i + 3], &[0.0, -0.2, 2.0]);
