@@ -103,7 +103,7 @@ fn main() {
     let (secs, bytes) = (t.elapsed().as_secs_f64(), dir_bytes(&d));
     row("scene_dir::write_scene", bytes, secs);
     let t = Instant::now();
-    let back = scene_dir::read_scene(&d).expect("read_scene");
+    let back = ggpt_core::io::read_scene(&d).expect("read_scene");
     row(
         "scene_dir::read_scene (validated)",
         bytes,
@@ -116,7 +116,7 @@ fn main() {
     let (secs, bytes) = (t.elapsed().as_secs_f64(), dir_bytes(&f));
     row("infer_folder::write (npz deflate)", bytes, secs);
     let t = Instant::now();
-    scene_dir::read_scene(&f).expect("read folder");
+    ggpt_core::io::read_scene(&f).expect("read folder");
     row("read_scene (§5.1 folder)", bytes, t.elapsed().as_secs_f64());
     let o = tmp.path().join("official.safetensors");
     let t = Instant::now();

@@ -7,7 +7,7 @@ use common::{fixture, full_scene};
 use ggpt_core::io::infer_folder::write_infer_folder;
 use ggpt_core::io::matches::{MatchFile, apply_diagonal};
 use ggpt_core::io::npy::{NpyData, read_npz, write_npz};
-use ggpt_core::io::scene_dir::read_scene;
+use ggpt_core::io::read_scene;
 
 fn expected(mut s: ggpt_core::Scene) -> ggpt_core::Scene {
     let d = s.dims;

@@ -7,7 +7,7 @@ use common::{fixture, fixture_dir, full_scene};
 use ggpt_core::io::official::{
     read_ff_outputs_bin, read_gt_bin, read_sfm_dlt_outputs_bin, write_official_safetensors,
 };
-use ggpt_core::io::scene_dir::read_scene;
+use ggpt_core::io::read_scene;
 use ggpt_core::io::st::StFile;
 
 fn reference() -> StFile {

@@ -9,7 +9,7 @@ use std::path::Path;
 use common::torch::{Value, bool_tensor, f32_tensor, write_torch};
 use common::{fixture, full_scene};
 use ggpt_core::io::official::{read_ff_outputs_bin, read_sfm_dlt_outputs_bin};
-use ggpt_core::io::scene_dir::read_scene;
+use ggpt_core::io::read_scene;
 
 const N: usize = 2;
 const H: usize = 3;

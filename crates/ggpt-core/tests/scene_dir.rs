@@ -6,9 +6,8 @@ mod common;
 use std::path::Path;
 
 use common::full_scene;
-use ggpt_core::io::scene_dir::{
-    self, MANIFEST, Manifest, TENSORS, read_manifest, read_scene, write_scene,
-};
+use ggpt_core::io::read_scene;
+use ggpt_core::io::scene_dir::{MANIFEST, Manifest, TENSORS, read_manifest, write_scene};
 use ggpt_core::io::st::{Dtype, StFile, StWriter};
 
 fn written() -> (tempfile::TempDir, ggpt_core::Scene) {
@@ -268,7 +267,7 @@ fn corrupt_manifest() {
     m.version = 99;
     std::fs::write(dir.path().join(MANIFEST), serde_json::to_vec(&m).unwrap()).unwrap();
     assert_names(&err_of(dir.path()), MANIFEST, "version");
-    let e = scene_dir::read_scene(&dir.path().join("images"))
+    let e = ggpt_core::io::read_scene(&dir.path().join("images"))
         .unwrap_err()
         .to_string();
     assert!(e.contains("not a scene directory"), "{e}");

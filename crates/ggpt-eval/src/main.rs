@@ -11,7 +11,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use ggpt_cli::{ProgressArgs, RegimeArg, SceneKindArg};
-use ggpt_core::io::scene_dir::read_scene;
+use ggpt_core::io::read_scene;
 
 use ggpt_core::io::atomic::write_json_atomic;
 use ggpt_eval::report::{CameraSource, PredSource, evaluate_scene, format_table, load_sfm_outputs};

@@ -5,7 +5,7 @@ use std::path::Path;
 use std::process::Command;
 
 use ggpt_core::io::npy::{NpyArray, NpyData, write_npy};
-use ggpt_core::io::scene_dir::read_scene;
+use ggpt_core::io::read_scene;
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_ggpt-eval"))

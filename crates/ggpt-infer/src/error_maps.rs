@@ -186,7 +186,7 @@ pub fn render_error_maps(
         let view = first..first + h * w;
         let image: Vec<[u8; 3]> = images[3 * view.start..3 * view.end]
             .chunks_exact(3)
-            .map(|c| [c[0], c[1], c[2]].map(ggpt_scene::export::color_u8))
+            .map(|c| [c[0], c[1], c[2]].map(ggpt_scene::color::color_u8))
             .collect();
         for (k, (panel, title)) in [
             &image[..],

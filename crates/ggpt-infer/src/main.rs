@@ -474,8 +474,7 @@ fn load_scene(dir: &Path) -> Result<ggpt_core::Scene> {
     if !dir.is_dir() {
         bail!("scene directory not found: {}", dir.display());
     }
-    ggpt_core::io::scene_dir::read_scene(dir)
-        .with_context(|| format!("reading scene {}", dir.display()))
+    ggpt_core::io::read_scene(dir).with_context(|| format!("reading scene {}", dir.display()))
 }
 
 fn run_demo_cmd(args: DemoArgs) -> Result<()> {

@@ -129,7 +129,7 @@ fn main() {
             };
             let (conf, counts) = observe(timing, || {
                 let out = model.forward(&batch);
-                ggpt_model::model::read_tensor_f32(&out.tokens_conf, "tokens_conf")
+                ggpt_model::readback::read_tensor_f32(&out.tokens_conf, "tokens_conf")
             });
             let conf = conf.unwrap_or_else(|e| {
                 eprintln!("forward of {n} tokens failed: {e}");

@@ -22,9 +22,11 @@ use burn::tensor::{Device, IndexingUpdateOp, Tensor, TensorData};
 
 use crate::host_attention::{WindowShape, window_attention};
 use crate::host_attention_grad::window_attention_backward;
-use crate::ops::{gather_rows, is_cpu_device, read_indices};
+use crate::kernels::gather_rows;
+use crate::ops::is_cpu_device;
 use crate::prepared::AttnIndex;
 use crate::profile;
+use crate::readback::read_indices;
 
 /// Upper bound on the floats of one score tensor `[W, H, L, L]` (128 MiB of f32).
 pub const SCORE_BUDGET_FLOATS: usize = 32 * 1024 * 1024;
@@ -467,8 +469,8 @@ mod tests {
         let fused = tensor_core(rows.clone(), shape, scale, true);
         let explicit = tensor_core(rows, shape, scale, false);
         let (a, b) = (
-            crate::model::tensor_into_f32(fused, "fused").unwrap(),
-            crate::model::tensor_into_f32(explicit, "explicit").unwrap(),
+            crate::readback::tensor_into_f32(fused, "fused").unwrap(),
+            crate::readback::tensor_into_f32(explicit, "explicit").unwrap(),
         );
         let worst = a
             .iter()

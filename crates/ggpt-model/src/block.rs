@@ -14,14 +14,15 @@ use burn::tensor::{Device, Tensor, TensorData};
 use crate::attention::{HostAttnIndex, WindowAttention};
 use crate::config::GgptConfig;
 use crate::drop_path::DropPath;
-use crate::gelu::gelu;
 use crate::host_conv_grad::{HostConvTables, subm_conv_backward};
-use crate::host_dense::{HostLinear, HostNorm, LinearGrads, NormRows, read_values, scale_rows};
+use crate::host_dense::{HostLinear, HostNorm, LinearGrads, NormRows, scale_rows};
 use crate::host_mlp;
+use crate::kernels::gelu;
 use crate::norm::{layer_norm, layer_norm_forward};
 use crate::ops::map_row_blocks;
 use crate::prepared::PreparedLevel;
 use crate::profile;
+use crate::readback::read_values;
 use crate::recorder::Recorder;
 use crate::sparse_conv::SubmConv3d;
 

@@ -1,7 +1,7 @@
 //! Counting what a forward costs a device: host readbacks (each one a device → host
 //! synchronisation) and kernel launches (docs/performance.md, "wgpu: launches and syncs").
 //!
-//! * **Readbacks** are counted by the crate's own readers ([`crate::model::tensor_into_f32`],
+//! * **Readbacks** are counted by the crate's own readers ([`crate::readback::tensor_into_f32`],
 //!   the host kernels' readers): every time the network reads a tensor back, on any backend.
 //! * **Kernel launches** are counted through CubeCL's launch observer
 //!   (`cubecl_runtime::logging::LaunchObservation`), which sees every kernel the process

@@ -21,8 +21,8 @@
 
 use rayon::prelude::*;
 
-use crate::ops::read_indices;
 use crate::prepared::{ConvIndex, NUM_TAPS};
+use crate::readback::read_indices;
 
 /// Pairs per GEMM block (bounds the gathered buffers: `PAIR_BLOCK (2 C_in + C_out)` floats).
 const PAIR_BLOCK: usize = 4096;

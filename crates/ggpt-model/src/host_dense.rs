@@ -8,8 +8,9 @@
 //! autodiff's decomposed LayerNorm on one thread (docs/performance.md).
 
 use burn::nn::{LayerNorm, Linear};
-use burn::tensor::Tensor;
 use rayon::prelude::*;
+
+use crate::readback::read_values;
 
 /// Rows per rayon task of the row-wise passes.
 pub(crate) const ROWS_PER_TASK: usize = 64;
@@ -439,9 +440,4 @@ impl HostNorm {
     pub fn state(&self, x: &[f32]) -> NormRows {
         NormRows::of(x, self.gamma.len(), self.eps)
     }
-}
-
-/// The f32 values of `t`, row-major; `None` when they cannot be read back.
-pub(crate) fn read_values<const D: usize>(t: Tensor<D>) -> Option<Vec<f32>> {
-    crate::model::tensor_into_f32(t, "host readback").ok()
 }

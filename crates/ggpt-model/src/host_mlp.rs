@@ -25,32 +25,8 @@ use crate::host_dense::{
     HostLinear, HostNorm, LinearGrads, ROWS_PER_TASK, layer_norm_backward_rows, layer_norm_rows,
     scale_rows,
 };
+use crate::kernels::{gelu_derivative, gelu_value};
 use crate::ops::ROW_BLOCK_BUDGET_FLOATS;
-
-/// `1 / sqrt(2 pi)`, the standard normal density at 0.
-const INV_SQRT_2PI: f32 = 0.398_942_3;
-
-/// `GELU(h) = h · ½ (1 + erf(h / √2))` in place, over the rayon pool: the same f32 operations,
-/// in the same order, as the tensor composition of [`crate::gelu::gelu`].
-pub fn gelu_in_place(h: &mut [f32]) {
-    h.par_chunks_mut(ROWS_PER_TASK * 256).for_each(|c| {
-        for v in c {
-            *v = gelu_value(*v);
-        }
-    });
-}
-
-#[inline]
-fn gelu_value(x: f32) -> f32 {
-    x * ((libm::erff(x * std::f32::consts::FRAC_1_SQRT_2) + 1.0) * 0.5)
-}
-
-/// `GELU'(x) = ½ (1 + erf(x / √2)) + x φ(x)`.
-#[inline]
-fn gelu_derivative(x: f32) -> f32 {
-    let cdf = (libm::erff(x * std::f32::consts::FRAC_1_SQRT_2) + 1.0) * 0.5;
-    cdf + x * INV_SQRT_2PI * (-0.5 * x * x).exp()
-}
 
 /// Gradients of one MLP branch (row-major; the parameter shapes of the layers).
 #[derive(Debug, Clone)]
@@ -352,26 +328,5 @@ mod tests {
             mlp_backward(&x, &g, Some(&s[1..]), &ln, &fc1, &fc2).is_none(),
             "a short drop-path scale is refused"
         );
-    }
-
-    #[test]
-    fn gelu_matches_the_tensor_composition() {
-        let xs: Vec<f32> = (-60..=60).map(|i| i as f32 * 0.1).collect();
-        let mut host = xs.clone();
-        gelu_in_place(&mut host);
-        for (&x, &y) in xs.iter().zip(&host) {
-            let want = 0.5 * x as f64 * (1.0 + libm::erf(x as f64 / 2f64.sqrt()));
-            assert!(
-                (y as f64 - want).abs() < 1e-6,
-                "gelu({x}) = {y}, want {want}"
-            );
-            let dwant = 0.5 * (1.0 + libm::erf(x as f64 / 2f64.sqrt()))
-                + x as f64 * (-(x as f64).powi(2) / 2.0).exp()
-                    / (2.0 * std::f64::consts::PI).sqrt();
-            assert!(
-                (gelu_derivative(x) as f64 - dwant).abs() < 1e-6,
-                "gelu'({x})"
-            );
-        }
     }
 }

@@ -5,7 +5,7 @@ use burn::nn::{BatchNorm, Linear, LinearConfig};
 use burn::tensor::{Device, Tensor};
 
 use crate::config::GgptConfig;
-use crate::gelu::gelu;
+use crate::kernels::gelu;
 use crate::norm::batch_norm;
 
 /// `Linear(C_in -> C_out)` -> BatchNorm -> exact GELU, per row.

@@ -11,8 +11,7 @@ use crate::head::Head;
 use crate::linear_bn::LinearBnGelu;
 use crate::pooling::SerializedPooling;
 use crate::prepared::PreparedBatch;
-use crate::recorder::Recorder;
-use crate::segments::Program;
+use crate::readback::read_tensor_f32;
 use crate::unpooling::Unpooling;
 
 /// Encoder stage `s`: pooling from level `s - 1` (absent for `s = 0`) and its blocks.
@@ -176,49 +175,6 @@ impl Ggpt {
             ),
         }
     }
-
-    /// Forward of a prepared batch.
-    pub fn forward(&self, batch: &PreparedBatch) -> GgptOutput {
-        self.forward_recorded(batch, &mut Recorder::disabled())
-    }
-
-    /// Forward recording the fixture-named intermediates into `rec` (when enabled): the
-    /// segments of [`Program`] in order, each slot dropped after its last reader.
-    pub fn forward_recorded(&self, batch: &PreparedBatch, rec: &mut Recorder) -> GgptOutput {
-        let program = Program::of(self);
-        let mut slots: Vec<Option<Tensor<2>>> = vec![None; program.num_slots];
-        let device = batch.coord.device();
-        let take =
-            |slots: &mut Vec<Option<Tensor<2>>>, k: usize, inputs: &[usize]| -> Vec<Tensor<2>> {
-                let args: Vec<Tensor<2>> = inputs
-                    .iter()
-                    .map(|&i| {
-                        slots[i]
-                            .clone()
-                            .unwrap_or_else(|| Tensor::zeros([0, 0], &device))
-                    })
-                    .collect();
-                for &i in inputs {
-                    if program.last_use[i] == k {
-                        slots[i] = None;
-                    }
-                }
-                args
-            };
-        for (k, seg) in program.segments.iter().enumerate() {
-            let args = take(&mut slots, k, &seg.inputs);
-            for (o, t) in seg
-                .outputs
-                .iter()
-                .zip(self.run_segment(batch, seg.op, &args, rec))
-            {
-                slots[*o] = Some(t);
-            }
-        }
-        // `take` returns one tensor per slot of `head_inputs` (two)
-        let head = take(&mut slots, program.segments.len(), &program.head_inputs);
-        self.run_head(batch, head[0].clone(), head[1].clone(), rec)
-    }
 }
 
 impl GgptOutput {
@@ -261,39 +217,4 @@ impl GgptOutput {
         }
         Ok(out)
     }
-}
-
-/// Reads a tensor back to the host as `Vec<f32>`. A failed device execution (e.g. a GPU buffer
-/// allocation above the device's limits or out of memory) becomes [`ModelError::Readback`]
-/// naming the tensor, with a hint to run smaller forwards, instead of a panic.
-pub fn read_tensor_f32<const D: usize>(
-    t: &burn::tensor::Tensor<D>,
-    name: &str,
-) -> Result<Vec<f32>> {
-    tensor_into_f32(t.clone(), name)
-}
-
-/// [`read_tensor_f32`] of an owned tensor (no copy of the tensor data on the host).
-pub fn tensor_into_f32<const D: usize>(t: burn::tensor::Tensor<D>, name: &str) -> Result<Vec<f32>> {
-    crate::device_stats::note_readback();
-    let data = t.try_into_data().map_err(|e| ModelError::Readback {
-        name: name.to_string(),
-        message: format!("device execution failed ({e}); if the device ran out of memory or hit a buffer-size limit, run smaller forwards (--max-tokens-per-forward / smaller chunks)"),
-    })?;
-    data_into_f32(data, name)
-}
-
-/// Converts tensor data to `Vec<f32>`, naming the tensor on failure.
-pub fn read_f32(data: &burn::tensor::TensorData, name: &str) -> Result<Vec<f32>> {
-    data_into_f32(data.clone(), name)
-}
-
-/// [`read_f32`] of owned data.
-fn data_into_f32(data: burn::tensor::TensorData, name: &str) -> Result<Vec<f32>> {
-    data.convert::<f32>()
-        .try_into_vec::<f32>()
-        .map_err(|e| ModelError::Readback {
-            name: name.to_string(),
-            message: format!("{e:?}"),
-        })
 }

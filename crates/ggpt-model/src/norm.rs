@@ -51,21 +51,11 @@ pub fn layer_norm(cfg: &GgptConfig, channels: usize, device: &Device) -> LayerNo
         .init(device)
 }
 
-/// `ln` (epsilon `eps`, the one it was built with) applied to `x [N, C]`. Without a graph (`x`
-/// and the parameters untracked) on an autodiff device, the inner backend's fused kernel runs
-/// (flex: one multi-threaded pass) instead of the autodiff backend's decomposition into a
-/// dozen single-threaded element-wise ops; the result goes back onto the autodiff device. The
-/// graph-free training forward of [`crate::recompute`] takes this path.
+/// `ln` (epsilon `eps`, the one it was built with) applied to `x [N, C]`: the `layer_norm_rows`
+/// op of the kernel layer (flex: Burn's fused multi-threaded LayerNorm forward and a host
+/// backward, under autodiff as well; `docs/architecture.md`, "Kernel layer").
 pub fn layer_norm_forward(ln: &LayerNorm, eps: f64, x: Tensor<2>) -> Tensor<2> {
-    let tracked = x.is_tracked()
-        || ln.gamma.val().is_tracked()
-        || ln.beta.as_ref().is_some_and(|b| b.val().is_tracked());
-    if tracked || !x.device().is_autodiff() {
-        return ln.forward(x);
-    }
-    let gamma = ln.gamma.val().without_autodiff();
-    let beta = ln.beta.as_ref().map(|b| b.val().without_autodiff());
-    burn::tensor::module::layer_norm(x.without_autodiff(), gamma, beta, eps).autodiff()
+    crate::kernels::layer_norm(x, ln.gamma.val(), ln.beta.as_ref().map(|b| b.val()), eps)
 }
 
 /// `bn` applied to `x` `[N, C]` -> `[N, C]` with PyTorch's training semantics: in training mode

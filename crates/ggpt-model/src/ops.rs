@@ -1,4 +1,4 @@
-//! Small device helpers shared by the building blocks: index upload and row gathers.
+//! Small device helpers shared by the building blocks: index uploads and row blocks.
 
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
@@ -22,37 +22,6 @@ pub(crate) fn float_tensor<const D: usize>(
 pub fn is_cpu_device(device: &Device) -> bool {
     let name = format!("{device:?}");
     name.contains("Flex") || name.contains("NdArray")
-}
-
-/// The values of an index table read back to the host, `None` when the readback fails or an
-/// entry is negative (the host kernels' tables: [`crate::attention::HostAttnIndex`],
-/// [`crate::host_conv_grad::HostConvTables`]).
-pub(crate) fn read_indices(t: &Tensor<1, Int>) -> Option<Vec<usize>> {
-    crate::device_stats::note_readback();
-    let v = t
-        .clone()
-        .try_into_data()
-        .ok()?
-        .convert::<i64>()
-        .try_to_vec::<i64>()
-        .ok()?;
-    v.into_iter().map(|x| usize::try_from(x).ok()).collect()
-}
-
-/// `x[idx]` along rows: `[N, C]` -> `[M, C]`.
-///
-/// On CPU backends (and for inference anywhere) this is `select`; on GPU backends under
-/// autodiff it is `gather` with an expanded index, whose backward is an atomic scatter-add
-/// (the backward of `select` is a serial loop per column on CubeCL in 0.22, burn-notes.md).
-pub(crate) fn gather_rows(x: Tensor<2>, idx: Tensor<1, Int>) -> Tensor<2> {
-    let device = x.device();
-    if device.is_autodiff() && !is_cpu_device(&device) {
-        let [_, c] = x.dims();
-        let [m] = idx.dims();
-        x.gather(0, idx.reshape([m, 1]).expand([m, c]))
-    } else {
-        x.select(0, idx)
-    }
 }
 
 /// Upper bound on the floats of one row block of a wide intermediate (MLP hidden layer, head

@@ -15,9 +15,9 @@ use burn::nn::{BatchNorm, Linear, LinearConfig};
 use burn::tensor::{Device, Tensor};
 
 use crate::config::GgptConfig;
-use crate::gelu::gelu;
+use crate::kernels::gather_rows;
+use crate::kernels::gelu;
 use crate::norm::batch_norm;
-use crate::ops::gather_rows;
 use crate::prepared::PoolIndex;
 use crate::recorder::Recorder;
 

@@ -34,11 +34,12 @@ use burn::tensor::{Device, Distribution, Gradients, Tensor};
 
 use crate::attention::SCORE_BUDGET_FLOATS;
 use crate::drop_path::{self, MaskRngState};
-use crate::model::{Ggpt, GgptOutput, read_tensor_f32};
+use crate::model::{Ggpt, GgptOutput};
 use crate::norm;
 use crate::ops::is_cpu_device;
 use crate::prepared::PreparedBatch;
 use crate::profile;
+use crate::readback::read_tensor_f32;
 use crate::recorder::Recorder;
 use crate::segments::{BlockPart, Op, Program};
 

@@ -1,6 +1,6 @@
 //! The network's forward (network.md §3.2, §5–§10) as one list of segments over tensor slots.
 //!
-//! This is the single description of the graph. The plain forward ([`Ggpt::forward`]) runs
+//! This is the single description of the graph. The plain forward ([`Ggpt::forward`], here) runs
 //! the segments in order and drops each slot after its last reader. The recomputing training
 //! step ([`crate::recompute`]) keeps the slots as checkpoints, then re-runs each segment under
 //! autodiff in reverse order.
@@ -210,6 +210,49 @@ impl Program {
 }
 
 impl Ggpt {
+    /// Forward of a prepared batch.
+    pub fn forward(&self, batch: &PreparedBatch) -> GgptOutput {
+        self.forward_recorded(batch, &mut Recorder::disabled())
+    }
+
+    /// Forward recording the fixture-named intermediates into `rec` (when enabled): the
+    /// segments of [`Program`] in order, each slot dropped after its last reader.
+    pub fn forward_recorded(&self, batch: &PreparedBatch, rec: &mut Recorder) -> GgptOutput {
+        let program = Program::of(self);
+        let mut slots: Vec<Option<Tensor<2>>> = vec![None; program.num_slots];
+        let device = batch.coord.device();
+        let take =
+            |slots: &mut Vec<Option<Tensor<2>>>, k: usize, inputs: &[usize]| -> Vec<Tensor<2>> {
+                let args: Vec<Tensor<2>> = inputs
+                    .iter()
+                    .map(|&i| {
+                        slots[i]
+                            .clone()
+                            .unwrap_or_else(|| Tensor::zeros([0, 0], &device))
+                    })
+                    .collect();
+                for &i in inputs {
+                    if program.last_use[i] == k {
+                        slots[i] = None;
+                    }
+                }
+                args
+            };
+        for (k, seg) in program.segments.iter().enumerate() {
+            let args = take(&mut slots, k, &seg.inputs);
+            for (o, t) in seg
+                .outputs
+                .iter()
+                .zip(self.run_segment(batch, seg.op, &args, rec))
+            {
+                slots[*o] = Some(t);
+            }
+        }
+        // `take` returns one tensor per slot of `head_inputs` (two)
+        let head = take(&mut slots, program.segments.len(), &program.head_inputs);
+        self.run_head(batch, head[0].clone(), head[1].clone(), rec)
+    }
+
     /// Runs one segment: `inputs` in the order of [`Segment::inputs`], returns the
     /// tensors of [`Segment::outputs`]. Shapes as in the module table; recording under the
     /// fixture names when `rec` is enabled.

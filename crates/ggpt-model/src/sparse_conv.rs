@@ -17,7 +17,8 @@ use burn::module::{Module, Param};
 use burn::nn::Initializer;
 use burn::tensor::{Device, IndexingUpdateOp, Tensor};
 
-use crate::ops::{gather_rows, is_cpu_device};
+use crate::kernels::gather_rows;
+use crate::ops::is_cpu_device;
 use crate::prepared::{ConvIndex, NUM_TAPS, TapIndex};
 
 /// Upper bound on the floats of one im2col block (64 MiB of f32).

@@ -12,8 +12,8 @@ use burn::module::Module;
 use burn::tensor::{Device, Int, Tensor};
 
 use crate::config::GgptConfig;
+use crate::kernels::gather_rows;
 use crate::linear_bn::LinearBnGelu;
-use crate::ops::gather_rows;
 use crate::recorder::Recorder;
 
 /// Official `dec.dec{s}.up`: `proj.{0,1}` and `proj_skip.{0,1}`.

@@ -687,7 +687,7 @@ impl PyScene {
 #[pyfunction]
 pub fn read_scene(py: Python<'_>, path: std::path::PathBuf) -> PyResult<PyScene> {
     let scene = py
-        .detach(|| ggpt_core::io::scene_dir::read_scene(&path))
+        .detach(|| ggpt_core::io::read_scene(&path))
         .map_err(core_error)?;
     Ok(PyScene { scene })
 }

@@ -25,6 +25,7 @@ use ggpt_core::io::st::StWriter;
 use ggpt_core::{Cameras, Scene, SfmResult};
 use rand::SeedableRng;
 
+use crate::color::color_u8;
 use crate::driver::RefinedScene;
 use crate::error::{SceneError, check_len};
 
@@ -83,12 +84,6 @@ pub fn confidence_threshold(conf: &[f32], q: f64) -> Result<f32, SceneError> {
     } else {
         torch_quantile(conf, q)
     }
-}
-
-/// Colour conversion of the official export: `floor(255 · clamp(v, 0, 1))` in `f32`.
-pub fn color_u8(v: f32) -> u8 {
-    let c = if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) };
-    (255.0f32 * c).floor() as u8
 }
 
 /// Seeded uniform subset of `indices` of size `max` (all of them when there are fewer), kept in
@@ -750,17 +745,6 @@ mod tests {
             (lo + 1.0) - (1.0 - w)
         };
         assert_eq!(confidence_threshold(&v, 0.2).unwrap(), want);
-    }
-
-    #[test]
-    fn colour_conversion_truncates() {
-        assert_eq!(color_u8(0.0), 0);
-        assert_eq!(color_u8(1.0), 255);
-        assert_eq!(color_u8(1.5), 255);
-        assert_eq!(color_u8(-0.2), 0);
-        assert_eq!(color_u8(0.5), 127); // 127.5 -> 127
-        assert_eq!(color_u8(0.999), 254); // 254.745 -> 254
-        assert_eq!(color_u8(f32::NAN), 0);
     }
 
     #[test]

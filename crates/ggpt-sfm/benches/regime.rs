@@ -7,7 +7,7 @@
 //! Scene `i` in `0..scenes` has seed `first_seed + i`, kind `kinds[i % kinds.len()]` and
 //! `views[(i / kinds.len()) % views.len()]` views (so every kind meets every view count). Each
 //! scene is generated with [`ggpt_synth::generate`], then the SfM stage runs exactly as
-//! `ggpt-train`'s `prepare::synthetic_scene` runs it (benchmark preset, both matchers). Printed
+//! `ggpt-train`'s `scene_source::synthetic_scene` runs it (benchmark preset, both matchers). Printed
 //! (markdown): per scene the feed-forward AUC@5/@10 over all GT pixels, the SfM coverage (GT-valid
 //! pixels with a DLT point), the SfM AUC@5 on the covered pixels and over all pixels, optionally
 //! the coverage with each matcher alone, and the SfM wall time; then min / median / mean / max
@@ -106,7 +106,7 @@ fn eval(scene: &Scene, pred: &[f32], subset: Option<&[bool]>, seed: u64) -> Resu
     .metrics)
 }
 
-/// Runs the SfM stage on `matches` as `ggpt_train::prepare::synthetic_scene` does.
+/// Runs the SfM stage on `matches` as `ggpt_train::scene_source::synthetic_scene` does.
 fn sfm(scene: &Scene, matches: &[MatchSet]) -> Result<SfmResult> {
     let ff = scene
         .ff

@@ -4,10 +4,58 @@
 //! `sample` = bilinear interpolation with zero padding (PyTorch `grid_sample`, `align_corners =
 //! false`, `padding = zeros`). Computed in f32 through the official normalised coordinates.
 
+use ggpt_core::{Dims, MatchSet};
 use rayon::prelude::*;
 
 use crate::error::{Result, SfmError};
+
 use crate::matches::Correspondences;
+
+/// The constructor of [`Correspondences`] from stored matches lives beside the cycle error it
+/// computes when the file has none.
+impl Correspondences {
+    /// Builds correspondences from a stored [`MatchSet`] (`formats.md` §5.2 layout, ff pixels):
+    /// checks the lengths, computes the cycle error (`sfm.md` §3) when it is absent and applies the
+    /// diagonal convention. Non-finite match coordinates get score 0 and the missing-pair cycle error.
+    pub fn from_match_set(set: &MatchSet, dims: Dims) -> Result<Self> {
+        let e = dims.n * dims.n * dims.hw();
+        if set.pred_matches.len() != 2 * e || set.pred_scores.len() != e {
+            return Err(SfmError::Shape(format!(
+                "matcher {}: {} match values / {} scores, expected {} / {e} for the images' N={} h={} w={}",
+                set.matcher,
+                set.pred_matches.len(),
+                set.pred_scores.len(),
+                2 * e,
+                dims.n,
+                dims.h,
+                dims.w
+            )));
+        }
+        if let Some(c) = &set.pred_cycle_error
+            && c.len() != e
+        {
+            return Err(SfmError::Shape(format!(
+                "matcher {}: {} cycle errors, expected {e}",
+                set.matcher,
+                c.len()
+            )));
+        }
+        let mut corr = Correspondences {
+            dims,
+            matches: set.pred_matches.clone(),
+            scores: set.pred_scores.clone(),
+            cycle: vec![0.0; e],
+        };
+        corr.apply_diagonal();
+        match &set.pred_cycle_error {
+            Some(c) => corr.cycle.copy_from_slice(c),
+            None => compute_cycle_errors(&mut corr)?,
+        }
+        corr.sanitize();
+        corr.apply_diagonal();
+        Ok(corr)
+    }
+}
 
 /// Bilinear sample with zero padding of a 2-channel `h x w` image `img` (`[h*w, 2]`, interleaved)
 /// at ff-pixel location `(x, y)` (pixel-centre convention), in f32, through the normalised

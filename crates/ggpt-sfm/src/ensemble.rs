@@ -2,10 +2,7 @@
 //! error wins, after invalid matches (score `< 1e-5`) had their cycle error replaced by `1e6`.
 
 use crate::error::{Result, SfmError};
-use crate::matches::{Correspondences, MISSING_CYCLE_ERROR};
-
-/// Scores below this are invalid matches (`sfm.md` §4 step 1), compared in f32.
-pub const INVALID_SCORE: f32 = 1e-5;
+use crate::matches::{Correspondences, INVALID_SCORE, MISSING_CYCLE_ERROR};
 
 /// Marks invalid matches: cycle error := `1e6` where score `< 1e-5` (f32, strict).
 /// Applied for every matcher, also when there is only one ([project], identical masks).

@@ -3,7 +3,7 @@
 //! * feed-forward outputs: an `.npz` of VGGT / MapAnything / Pi3 outputs or the project's
 //!   `ff.npz` (`ggpt_core::io::feedforward`, layout detected from the keys), the official
 //!   `ff_outputs.bin`, a scene directory
-//!   (`ggpt_core::io::scene_dir::read_scene`), or a safetensors file with the `ff/*` keys of the
+//!   (`ggpt_core::io::read_scene`), or a safetensors file with the `ff/*` keys of the
 //!   `sfm_small` fixture (`ff/images_ff`, `ff/extrinsics`, `ff/intrinsics`, `ff/points`,
 //!   `ff/points_conf`);
 //! * matches: the raw-matcher interchange safetensors layout (`docs/sfm.md`), a
@@ -132,7 +132,7 @@ pub fn read_ff_with(path: &Path, opts: &FfReadOptions) -> Result<FfInput> {
         });
     }
     if path.is_dir() {
-        let scene = ggpt_core::io::scene_dir::read_scene(path)?;
+        let scene = ggpt_core::io::read_scene(path)?;
         let ff = scene.ff.ok_or_else(|| {
             SfmError::format(
                 path,
@@ -232,8 +232,8 @@ pub fn read_ff_with(path: &Path, opts: &FfReadOptions) -> Result<FfInput> {
 /// Shape mismatches between the matches and the images are errors naming the file and key.
 pub fn read_matches(path: &Path, dims: Dims) -> Result<MatchesInput> {
     if path.is_dir() {
-        if ggpt_core::io::scene_dir::detect_layout(path).is_ok() {
-            let scene = ggpt_core::io::scene_dir::read_scene(path)?;
+        if ggpt_core::io::detect_layout(path).is_ok() {
+            let scene = ggpt_core::io::read_scene(path)?;
             if scene.dims != dims {
                 return Err(SfmError::Shape(format!(
                     "{}: matches are for N={} h={} w={}, the feed-forward images are N={} h={} w={}",
@@ -315,7 +315,7 @@ pub fn read_inputs(ff: &Path, matches: &Path) -> Result<(FfInput, MatchesInput)>
         }
     };
     if same_dir {
-        let scene = ggpt_core::io::scene_dir::read_scene(ff)?;
+        let scene = ggpt_core::io::read_scene(ff)?;
         let m = from_match_sets(matches, &scene.matches, scene.dims)?;
         let ffo = scene.ff.ok_or_else(|| {
             SfmError::format(ff, "ff", "the scene directory has no feed-forward outputs")

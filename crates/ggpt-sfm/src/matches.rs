@@ -3,13 +3,15 @@
 //!
 //! Coordinates are ff pixels in the pixel-centre convention (top-left pixel centre = `(0, 0)`).
 
-use ggpt_core::{Dims, MatchSet};
+use ggpt_core::Dims;
 
-use crate::cycle::compute_cycle_errors;
 use crate::error::{Result, SfmError};
 
 /// Cycle error written for missing pairs (`sfm.md` §2.2) and for invalid matches (§4).
 pub const MISSING_CYCLE_ERROR: f32 = 1e6;
+
+/// Scores below this are invalid matches (`sfm.md` §4 step 1), compared in f32.
+pub const INVALID_SCORE: f32 = 1e-5;
 
 /// Dense correspondences of one matcher (or of the ensemble) for all ordered view pairs.
 ///
@@ -83,48 +85,6 @@ impl Correspondences {
         }
     }
 
-    /// Builds correspondences from a stored [`MatchSet`] (`formats.md` §5.2 layout, ff pixels):
-    /// checks the lengths, computes the cycle error (`sfm.md` §3) when it is absent and applies the
-    /// diagonal convention. Non-finite match coordinates get score 0 and the missing-pair cycle error.
-    pub fn from_match_set(set: &MatchSet, dims: Dims) -> Result<Self> {
-        let e = dims.n * dims.n * dims.hw();
-        if set.pred_matches.len() != 2 * e || set.pred_scores.len() != e {
-            return Err(SfmError::Shape(format!(
-                "matcher {}: {} match values / {} scores, expected {} / {e} for the images' N={} h={} w={}",
-                set.matcher,
-                set.pred_matches.len(),
-                set.pred_scores.len(),
-                2 * e,
-                dims.n,
-                dims.h,
-                dims.w
-            )));
-        }
-        if let Some(c) = &set.pred_cycle_error
-            && c.len() != e
-        {
-            return Err(SfmError::Shape(format!(
-                "matcher {}: {} cycle errors, expected {e}",
-                set.matcher,
-                c.len()
-            )));
-        }
-        let mut corr = Correspondences {
-            dims,
-            matches: set.pred_matches.clone(),
-            scores: set.pred_scores.clone(),
-            cycle: vec![0.0; e],
-        };
-        corr.apply_diagonal();
-        match &set.pred_cycle_error {
-            Some(c) => corr.cycle.copy_from_slice(c),
-            None => compute_cycle_errors(&mut corr)?,
-        }
-        corr.sanitize();
-        corr.apply_diagonal();
-        Ok(corr)
-    }
-
     /// Replaces non-finite matches / scores / cycle errors by an invalid entry (match kept, score 0,
     /// cycle error [`MISSING_CYCLE_ERROR`]) so that they fail every threshold (documented fallback).
     pub fn sanitize(&mut self) {
@@ -170,7 +130,7 @@ impl Correspondences {
     }
 
     /// Per source view `s`: number of tracks with at least one valid off-diagonal match (score
-    /// `>= 1e-5`, [`crate::ensemble::INVALID_SCORE`]).
+    /// `>= 1e-5`, [`INVALID_SCORE`]).
     pub fn valid_matches_per_view(&self) -> Vec<usize> {
         let n = self.dims.n;
         let hw = self.dims.hw();
@@ -178,9 +138,7 @@ impl Correspondences {
         for (s, o) in out.iter_mut().enumerate() {
             *o = (0..hw)
                 .filter(|&k| {
-                    (0..n).any(|t| {
-                        t != s && self.scores[self.idx(t, s, k)] >= crate::ensemble::INVALID_SCORE
-                    })
+                    (0..n).any(|t| t != s && self.scores[self.idx(t, s, k)] >= INVALID_SCORE)
                 })
                 .count();
         }
@@ -191,6 +149,7 @@ impl Correspondences {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ggpt_core::MatchSet;
 
     fn dims() -> Dims {
         Dims { n: 2, h: 2, w: 3 }

@@ -13,11 +13,11 @@ use nalgebra::{Matrix3, Point3, Vector2};
 
 use crate::ba::{BaObservation, BaOptions, BaProblem, CameraModel, LossFunction, bundle_adjust};
 use crate::dlt::{DltOptions, DltOutput, triangulate_ba_tracks, triangulate_tracks};
-use crate::ensemble::{INVALID_SCORE, ensemble};
+use crate::ensemble::ensemble;
 use crate::epipolar::epipolar_filter;
 use crate::error::{Result, SfmError};
 use crate::masks::{Preset, Thresholds, compute_masks};
-use crate::matches::Correspondences;
+use crate::matches::{Correspondences, INVALID_SCORE};
 use crate::scatter::{ScatterOptions, ScatterResult, scatter};
 use crate::tracks::{BaTracks, TrackSelection, build_ba_tracks, select_ba_tracks, shi_tomasi};
 

@@ -185,7 +185,7 @@ fn cli_uses_the_given_principal_point() {
     let tmp = tempfile::tempdir().unwrap();
     let sdir = tmp.path().join("scene");
     ggpt_core::io::scene_dir::write_scene(&sdir, &s).unwrap();
-    let read = ggpt_core::io::scene_dir::read_scene(&sdir).unwrap();
+    let read = ggpt_core::io::read_scene(&sdir).unwrap();
     let ff = read.ff.as_ref().unwrap();
     assert_eq!(
         (

@@ -432,7 +432,7 @@ fn scene_directory_round_trip() {
     let dir = tempfile::tempdir().expect("tempdir");
     let path = dir.path().join("scene");
     ggpt_core::io::scene_dir::write_scene(&path, &out.scene).expect("write_scene");
-    let back = ggpt_core::io::scene_dir::read_scene(&path).expect("read_scene");
+    let back = ggpt_core::io::read_scene(&path).expect("read_scene");
     assert_eq!(back, out.scene);
 }
 

@@ -9,7 +9,7 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use ggpt_cli::{
     ChunkingArgs, DeviceArg, DeviceArgs, ModelArgs, ProgressArgs, RegimeArg, SceneKindArg,
 };
-use ggpt_train::prepare::SynthSpec;
+use ggpt_train::scene_source::SynthSpec;
 use ggpt_train::trainer::{LrSchedule, Recompute};
 use serde::Serialize;
 

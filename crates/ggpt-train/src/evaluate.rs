@@ -70,7 +70,7 @@ pub fn validate_chunks(
             out.tokens_conf.clone(),
             &HostTargets::new(&group).upload(device),
         );
-        loss_sum += ggpt_model::model::read_tensor_f32(&parts.total, "val loss")?
+        loss_sum += ggpt_model::readback::read_tensor_f32(&parts.total, "val loss")?
             .first()
             .copied()
             .unwrap_or(f32::NAN) as f64;

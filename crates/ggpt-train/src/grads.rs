@@ -205,7 +205,7 @@ impl ModuleVisitor for GradNamer<'_> {
             return;
         };
         let shape = g.dims().to_vec();
-        match ggpt_model::model::read_tensor_f32(&g, &path) {
+        match ggpt_model::readback::read_tensor_f32(&g, &path) {
             Ok(values) => self.out.push(official_layout(&path, shape, values)),
             Err(e) => self.error = Some(e.into()),
         }
@@ -274,7 +274,7 @@ pub fn run_case(
         out.tokens_conf,
         &HostTargets::new(&[chunk]).upload(device),
     );
-    let values = ggpt_model::model::read_tensor_f32(
+    let values = ggpt_model::readback::read_tensor_f32(
         &Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0),
         "loss",
     )?;
@@ -292,7 +292,7 @@ pub fn run_case(
         ] {
             let t = state.value_sync();
             let name = format!("{path}.{stat}");
-            let values = ggpt_model::model::read_tensor_f32(&t, &name)?;
+            let values = ggpt_model::readback::read_tensor_f32(&t, &name)?;
             bn_after.push(NamedTensor {
                 name: ggpt_model::weights::official_key(&name),
                 shape: t.dims().to_vec(),

@@ -10,8 +10,6 @@
 //! Sources: synthetic scenes (`ggpt-synth` + the `ggpt-sfm` stage) and official per-sequence
 //! directories (`gt.bin`, `ff_outputs.bin`, `sfm_dlt_outputs.bin`).
 
-use std::path::Path;
-
 use ggpt_core::{Scene, SfmResult};
 use ggpt_scene::chunker::{ChunkInputs, ChunkParams, PcgDraws, sample_training_chunk};
 use ggpt_scene::prealign::{DEFAULT_ALIGN_MAX_ERROR, align_gt, prealign_ff};
@@ -171,75 +169,10 @@ pub fn from_record(rec: ChunkRecord, scene: usize) -> Result<TrainChunk> {
     })
 }
 
-/// Synthetic scene specification (`ggpt-synth`): kind, views, resolution, seed.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct SynthSpec {
-    /// `room` or `object`.
-    pub kind: ggpt_synth::SceneKind,
-    /// Views.
-    pub views: usize,
-    /// ff width (multiple of 14).
-    pub width: usize,
-    /// ff height (multiple of 14).
-    pub height: usize,
-    /// Generator seed.
-    pub seed: u64,
-    /// Simulation regime; chunk sets written before regimes existed hold easy-regime scenes.
-    #[serde(default = "ggpt_synth::Regime::before_regimes")]
-    pub regime: ggpt_synth::Regime,
-}
-
-/// Generates a synthetic scene and runs the SfM stage (benchmark preset, seed 42) on it.
-/// Returns the scene (with `sfm` set) and the SfM result.
-pub fn synthetic_scene(spec: &SynthSpec) -> Result<(Scene, SfmResult)> {
-    let cfg = ggpt_synth::SynthConfig {
-        kind: spec.kind,
-        views: spec.views,
-        width: spec.width,
-        height: spec.height,
-        seed: spec.seed,
-        ..ggpt_synth::SynthConfig::for_regime(spec.regime)
-    };
-    let out = ggpt_synth::generate(&cfg)?;
-    let mut scene = out.scene;
-    let ff = scene
-        .ff
-        .as_ref()
-        .ok_or_else(|| TrainError::Invalid("synthetic scene without feed-forward".into()))?;
-    let sfm_cfg = ggpt_sfm::pipeline::SfmConfig::preset(ggpt_sfm::masks::Preset::Benchmark);
-    let sfm = ggpt_sfm::pipeline::run_sfm(ff, &scene.images, scene.dims, &scene.matches, &sfm_cfg)
-        .map_err(|e| TrainError::Sfm(format!("{}: {e}", scene.name)))?
-        .result;
-    scene.matches.clear();
-    scene.sfm = Some(sfm.clone());
-    Ok((scene, sfm))
-}
-
-/// Reads an official per-sequence directory (`gt.bin`, `ff_outputs.bin`, `sfm_dlt_outputs.bin`).
-pub fn official_scene(dir: &Path) -> Result<(Scene, SfmResult)> {
-    let scene = ggpt_core::io::official::read_official_dir(dir)?;
-    let sfm = scene
-        .sfm
-        .clone()
-        .ok_or_else(|| TrainError::Invalid(format!("{}: no sfm_dlt_outputs.bin", dir.display())))?;
-    if scene.gt.is_none() {
-        return Err(TrainError::Invalid(format!(
-            "{}: no gt.bin (training needs ground truth)",
-            dir.display()
-        )));
-    }
-    if scene.ff.is_none() {
-        return Err(TrainError::Invalid(format!(
-            "{}: no ff_outputs.bin",
-            dir.display()
-        )));
-    }
-    Ok((scene, sfm))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene_source::{SynthSpec, synthetic_scene};
 
     #[test]
     fn synthetic_scene_gives_normalised_chunks_with_gt() {

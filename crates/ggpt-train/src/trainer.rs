@@ -250,7 +250,7 @@ pub fn clip_global_norm(
         return Ok(0.0);
     }
     let total = Tensor::cat(sq.parts, 0).sum();
-    let norm = (ggpt_model::model::read_tensor_f32(&total, "grad norm")?
+    let norm = (ggpt_model::readback::read_tensor_f32(&total, "grad norm")?
         .first()
         .copied()
         .unwrap_or(0.0) as f64)
@@ -386,7 +386,7 @@ fn run_replica(
         let targets = HostTargets::new(part).upload(&device);
         let objective = |out: ggpt_model::GgptOutput| -> Result<(Tensor<1>, [f32; 3])> {
             let parts = loss(out.tokens_xyz, out.tokens_conf, &targets);
-            let vals = ggpt_model::model::read_tensor_f32(
+            let vals = ggpt_model::readback::read_tensor_f32(
                 &Tensor::cat(vec![parts.total.clone(), parts.conf, parts.id], 0),
                 "loss",
             )?;

@@ -9,7 +9,8 @@ use ggpt_scene::chunk_settings::{ChunkingSettings, resolve_chunking};
 use ggpt_scene::chunker::ChunkParams;
 use ggpt_train::chunkset::{SceneEntry, Split};
 use ggpt_train::evaluate::validate_chunks;
-use ggpt_train::prepare::{PrepareParams, SynthSpec, prepare_scene, synthetic_scene};
+use ggpt_train::prepare::{PrepareParams, prepare_scene};
+use ggpt_train::scene_source::{SynthSpec, synthetic_scene};
 
 /// Parameters of the shipped `small` configuration (its model card).
 const SHIPPED_PARAMETERS: usize = 623_772;

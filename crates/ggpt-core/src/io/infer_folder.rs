@@ -29,7 +29,7 @@ pub use crate::io::feedforward::PRINCIPAL_POINT_TOL;
 /// Accepted image file extensions (lower case).
 const IMAGE_EXTS: [&str; 3] = ["jpg", "jpeg", "png"];
 
-/// Reads a §5.1 folder (not validated; `scene_dir::read_scene` validates).
+/// Reads a §5.1 folder (not validated; `crate::io::read_scene` validates).
 pub fn read_infer_folder(dir: &Path) -> Result<Scene> {
     let (ff, mut images, dims) = read_ff_part(dir)?;
     let sfm = read_sfm_part(dir, dims)?;
@@ -295,7 +295,7 @@ pub fn write_infer_folder(dir: &Path, scene: &Scene) -> Result<()> {
         crate::io::npy::write_npz(&dir.join("sfm.npz"), &arrays, false)?;
     }
     for m in &scene.matches {
-        crate::io::scene_dir::check_matcher_name(dir, &m.matcher)?;
+        crate::io::matches::check_matcher_name(dir, &m.matcher)?;
         crate::io::matches::write_matches(
             &dir.join("matches")
                 .join(format!("{}.safetensors", m.matcher)),

@@ -196,3 +196,24 @@ pub fn apply_diagonal(m: &mut MatchFile) {
         }
     }
 }
+
+/// Matcher names become file names: `[A-Za-z0-9._+-]`, 1..=128 chars, not starting with `.`.
+pub(crate) fn check_matcher_name(dir: &Path, name: &str) -> Result<()> {
+    let ok = !name.is_empty()
+        && name.len() <= 128
+        && !name.starts_with('.')
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-' | '+'));
+    if ok {
+        Ok(())
+    } else {
+        Err(CoreError::format(
+            dir,
+            "matchers",
+            format!(
+                "matcher name '{name}' is not usable as a file name (allowed: A-Z a-z 0-9 . _ - +, not starting with '.')"
+            ),
+        ))
+    }
+}

@@ -419,7 +419,7 @@ fn same_dims(
 
 /// Reads an official three-file directory (any subset holding `ff_outputs.bin` or `gt.bin`).
 /// The scene name is the directory name (it seeds the chunk sampler, `pipeline.md` §5); images
-/// come from `images_ff` (else the GT `images`). Not validated; `scene_dir::read_scene` does that.
+/// come from `images_ff` (else the GT `images`). Not validated; `crate::io::read_scene` does that.
 pub fn read_official_dir(dir: &Path) -> Result<Scene> {
     let (gt_p, ff_p, sfm_p) = (
         dir.join("gt.bin"),

@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::io::atomic::write_bytes_atomic;
-use crate::io::matches::{encode_matches, read_matches_raw};
+use crate::io::matches::{check_matcher_name, encode_matches, read_matches_raw};
 use crate::io::st::{StFile, StWriter, check_finite_f32};
 use crate::{Cameras, CoreError, Dims, FeedForward, GroundTruth, Result, Scene, SfmResult};
 
@@ -81,50 +81,6 @@ pub struct Manifest {
     pub files: Vec<FileSum>,
 }
 
-/// Layout of a directory accepted by [`read_scene`].
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Layout {
-    /// `scene.json` + `scene.safetensors` (this module).
-    Project,
-    /// Official `gt.bin` / `ff_outputs.bin` / `sfm_dlt_outputs.bin` (`formats.md` §3).
-    Official,
-    /// `images/` + `ff.npz` + `matches/` (+ `sfm.npz`) (`formats.md` §5.1).
-    InferFolder,
-}
-
-/// Detects the layout of `dir` (error naming the directory when none matches). A directory with
-/// `ff.npz`, `sfm.npz` or `matches/` is a §5.1 folder (which may mix in official `.bin` files);
-/// otherwise `gt.bin` / `ff_outputs.bin` make it an official directory.
-pub fn detect_layout(dir: &Path) -> Result<Layout> {
-    if dir.join(MANIFEST).is_file() {
-        return Ok(Layout::Project);
-    }
-    if dir.join("ff.npz").is_file() || dir.join("sfm.npz").is_file() || dir.join("matches").is_dir()
-    {
-        return Ok(Layout::InferFolder);
-    }
-    if dir.join("ff_outputs.bin").is_file() || dir.join("gt.bin").is_file() {
-        return Ok(Layout::Official);
-    }
-    Err(CoreError::format(
-        dir,
-        "",
-        "not a scene directory: expected scene.json, ff_outputs.bin / gt.bin (official layout) or ff.npz (formats.md §5.1)",
-    ))
-}
-
-/// Reads a scene directory of any accepted layout, validates it fully and returns the scene.
-/// Errors name the file, the key and the problem.
-pub fn read_scene(dir: &Path) -> Result<Scene> {
-    let scene = match detect_layout(dir)? {
-        Layout::Project => read_project_scene(dir)?,
-        Layout::Official => crate::io::official::read_official_dir(dir)?,
-        Layout::InferFolder => crate::io::infer_folder::read_infer_folder(dir)?,
-    };
-    scene.validate()?;
-    Ok(scene)
-}
-
 /// Writes `scene` as a project scene directory (creating `dir`); every file is written
 /// atomically and the manifest last, so a partially written directory fails its checksums.
 pub fn write_scene(dir: &Path, scene: &Scene) -> Result<()> {
@@ -179,27 +135,6 @@ fn file_sum(rel: &str, bytes: &[u8]) -> FileSum {
         path: rel.to_string(),
         bytes: bytes.len() as u64,
         crc32: format!("{:08x}", crc32fast::hash(bytes)),
-    }
-}
-
-/// Matcher names become file names: `[A-Za-z0-9._+-]`, 1..=128 chars, not starting with `.`.
-pub(crate) fn check_matcher_name(dir: &Path, name: &str) -> Result<()> {
-    let ok = !name.is_empty()
-        && name.len() <= 128
-        && !name.starts_with('.')
-        && name
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-' | '+'));
-    if ok {
-        Ok(())
-    } else {
-        Err(CoreError::format(
-            dir,
-            "matchers",
-            format!(
-                "matcher name '{name}' is not usable as a file name (allowed: A-Z a-z 0-9 . _ - +, not starting with '.')"
-            ),
-        ))
     }
 }
 
@@ -341,7 +276,7 @@ fn read_checked(dir: &Path, m: &Manifest, rel: &str) -> Result<(PathBuf, Vec<u8>
 }
 
 /// Reads a project scene directory (no `Scene::validate`; [`read_scene`] adds it).
-fn read_project_scene(dir: &Path) -> Result<Scene> {
+pub(crate) fn read_project_scene(dir: &Path) -> Result<Scene> {
     let m = read_manifest(dir)?;
     let (path, bytes) = read_checked(dir, &m, TENSORS)?;
     let f = StFile::from_bytes(&path, bytes)?;

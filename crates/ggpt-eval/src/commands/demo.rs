@@ -5,7 +5,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use ggpt_cli::SyncStageBars;
-use ggpt_core::io::scene_dir::{read_scene, write_scene};
+use ggpt_core::io::read_scene;
+use ggpt_core::io::scene_dir::write_scene;
 use ggpt_synth::{Regime, SceneKind, SynthConfig, generate_with_progress};
 
 use ggpt_core::io::atomic::write_json_atomic;

@@ -7,7 +7,8 @@ use ggpt_core::io::colmap::{ColmapModel, ColmapPoint2D, ColmapPoint3D, read_colm
 use ggpt_core::io::npy::{NpyArray, NpyData, encode_npy, read_npy, read_npz, write_npz};
 use ggpt_core::io::official::read_official_dir;
 use ggpt_core::io::ply::{PlyCloud, read_ply, write_ply};
-use ggpt_core::io::scene_dir::{read_scene, write_scene};
+use ggpt_core::io::read_scene;
+use ggpt_core::io::scene_dir::write_scene;
 use ggpt_core::io::torch_zip::{TorchValue, write_torch_zip};
 
 use super::{err_text, seed_from_writer};

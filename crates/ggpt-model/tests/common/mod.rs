@@ -5,8 +5,8 @@ use std::path::PathBuf;
 
 use burn::tensor::{Device, Tensor};
 use ggpt_model::chunk_io::read_f32;
-use ggpt_model::model::read_f32 as data_f32;
 use ggpt_model::plan::ChunkInput;
+use ggpt_model::readback::read_f32 as data_f32;
 use ggpt_model::{Ggpt, GgptConfig};
 use safetensors::SafeTensors;
 

@@ -3,13 +3,22 @@
 //! (`6 n_views` pose parameters, then the focal parameters of each camera), the gauge, the work
 //! chunks, the current estimate ([`State`]) and how a solved step updates it.
 
-use nalgebra::{Matrix3, Point3, Rotation3, Vector2, Vector3};
+use nalgebra::{DVector, Matrix3, Point3, Rotation3, Vector2, Vector3};
 
-use super::schur::Step;
 use super::{
     BaOptions, BaProblem, CameraModel, Damping, LossFunction, MAX_POINT_COORD,
     PROJECTION_MIN_DEPTH, orthonormalize_rotation,
 };
+
+/// Result of one damped solve ([`super::schur`]), applied by [`apply_step`].
+pub(super) struct Step {
+    /// Camera parameter step (size `nc`).
+    pub(super) dc: DVector<f64>,
+    /// Step of each active point.
+    pub(super) dp: Vec<Vector3<f64>>,
+    /// Predicted decrease of the (IRLS) model.
+    pub(super) predicted: f64,
+}
 
 /// Observations per work chunk (chunks of whole points). The chunking depends only on the
 /// problem, never on the thread count, and partial sums are combined in chunk order: results are

@@ -6,22 +6,12 @@
 use nalgebra::{Cholesky, DVector, Matrix3, Vector3};
 use rayon::prelude::*;
 
-use super::layout::{Layout, cam_indices};
+use super::layout::{Layout, Step, cam_indices};
 use super::residual::{Linearization, add_block};
 
 /// Lower / upper clamp of the Marquardt scaling `diag(JᵀWJ)` (Ceres' `min/max_lm_diagonal`).
 const MIN_LM_DIAGONAL: f64 = 1e-6;
 const MAX_LM_DIAGONAL: f64 = 1e32;
-
-/// Result of one damped solve.
-pub(super) struct Step {
-    /// Camera parameter step (size `nc`).
-    pub(super) dc: DVector<f64>,
-    /// Step of each active point.
-    pub(super) dp: Vec<Vector3<f64>>,
-    /// Predicted decrease of the (IRLS) model.
-    pub(super) predicted: f64,
-}
 
 /// Marquardt scaling of a diagonal entry.
 #[inline]

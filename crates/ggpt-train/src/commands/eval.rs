@@ -9,7 +9,7 @@ use ggpt_scene::driver::RefineOptions;
 use ggpt_train::chunkset::{ChunkSet, SceneEntry, Split};
 use ggpt_train::evaluate::{HeldOutScene, HeldOutSummary, evaluate_scene, validate_chunks};
 use ggpt_train::model_source::load_model_source;
-use ggpt_train::prepare::{SynthSpec, synthetic_scene};
+use ggpt_train::scene_source::{SynthSpec, synthetic_scene};
 
 use crate::cli::EvalArgs;
 

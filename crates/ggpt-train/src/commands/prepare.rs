@@ -5,10 +5,8 @@ use ggpt_cli::{Bar, ChunkingArgs};
 use ggpt_scene::chunk_settings::resolve_chunking;
 use ggpt_scene::chunker::ChunkParams;
 use ggpt_train::chunkset::{ChunkSetWriter, SceneEntry, Split};
-use ggpt_train::prepare::{
-    PrepareParams, PreparedScene, official_scene, prepare_scene, synthetic_scene,
-};
-use ggpt_train::scene_source::SceneSource;
+use ggpt_train::prepare::{PrepareParams, PreparedScene, prepare_scene};
+use ggpt_train::scene_source::{SceneSource, official_scene, synthetic_scene};
 
 use crate::cli::PrepareArgs;
 

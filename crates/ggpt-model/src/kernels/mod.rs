@@ -1,0 +1,176 @@
+//! The kernel layer: GGPT's own operations as a Burn backend extension (`docs/architecture.md`,
+//! "Kernel layer").
+//!
+//! ```text
+//! network modules (block, pooling, linear_bn, attention, ...)
+//!        │  call the tensor-level wrappers below (gelu, gather_rows, ...)
+//!        ▼
+//! GgptKernels (#[backend_extension]): routed by the tensor's backend TYPE
+//!   ├─ Flex, NdArray   host kernels over the rayon pool (zero-copy input on flex)
+//!   ├─ Cube (wgpu/CUDA) the trait's default bodies, composed of Burn primitives
+//!   └─ Autodiff<B, C>  one `Backward` per op; its backward calls B's backward op
+//!        ▼
+//! readback (host vectors), ground (burn)
+//! ```
+//!
+//! Every op has a default body composed of differentiable Burn primitives: it is the
+//! definition the host kernels and the `Backward`s are tested against (each op's tests check
+//! "the op's `Backward` equals autodiff of the composed default body"), and it is what a
+//! backend without a kernel of its own runs. A new backend gets GGPT by an empty
+//! `impl GgptKernels for NewBackend {}` plus its selector in the attribute; a new op is a
+//! method with a default body, host kernels where they pay, and a `Backward` in
+//! [`autodiff`].
+
+// burn-ndarray is deprecated in Burn 0.22.1; it stays the second CPU backend (device.rs), and
+// the extension macro names it in generated code that an item attribute does not reach.
+#![allow(deprecated)]
+
+mod autodiff;
+pub mod composed;
+mod gelu;
+mod host;
+mod norm;
+mod rows;
+
+use burn::backend::tensor::{FloatTensor, IntTensor};
+use burn::backend::{Backend, Dispatch, backend_extension};
+use burn::tensor::{Int, Tensor};
+
+pub use gelu::{gelu_derivative, gelu_in_place, gelu_value};
+
+/// GGPT's operations, one implementation per backend type (module docs).
+#[backend_extension(
+    Flex: cfg(feature = "flex"),
+    NdArray: cfg(feature = "ndarray"),
+    Cube: cfg(any(feature = "wgpu", feature = "cuda")),
+    Autodiff
+)]
+pub trait GgptKernels: Backend {
+    /// Exact (erf) GELU, element-wise, any shape (network.md §5.1, §11.1):
+    /// `GELU(x) = x · ½ (1 + erf(x / √2))`.
+    fn gelu_exact(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        composed::gelu::<Self>(x)
+    }
+
+    /// The gradient of [`GgptKernels::gelu_exact`] at `x` times the upstream gradient `grad` (same
+    /// shape): `grad · (½ (1 + erf(x / √2)) + x φ(x))`, `φ(x) = exp(-x²/2) / √(2π)`.
+    fn gelu_exact_backward(x: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        composed::gelu_backward::<Self>(x, grad)
+    }
+
+    /// LayerNorm of `x [N, C]` over its last axis with the affine `gamma [C]`, `beta [C]`
+    /// (biased variance, epsilon `eps`; network.md §11): `[N, C]`.
+    fn layer_norm_rows(
+        x: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        beta: FloatTensor<Self>,
+        eps: f64,
+    ) -> FloatTensor<Self> {
+        composed::layer_norm::<Self>(x, gamma, beta, eps)
+    }
+
+    /// The backward of [`GgptKernels::layer_norm_rows`]: `x [N, C]`, `gamma [C]` and the
+    /// output gradient `grad [N, C]` -> `(dx [N, C], dγ [C], dβ [C])`.
+    fn layer_norm_rows_backward(
+        x: FloatTensor<Self>,
+        gamma: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        eps: f64,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        composed::layer_norm_backward::<Self>(x, gamma, grad, eps)
+    }
+
+    /// Rows of `x [N, C]` picked by `idx [M]` (values in `0..N`): `[M, C]`.
+    fn gather_rows(x: FloatTensor<Self>, idx: IntTensor<Self>) -> FloatTensor<Self> {
+        Self::float_select(x, 0, idx)
+    }
+
+    /// The adjoint of [`GgptKernels::gather_rows`]: `grad [M, C]` summed into `rows` rows, row
+    /// `idx[m]` receiving `grad[m]`: `[rows, C]`. The default is `select_assign` with addition.
+    fn scatter_add_rows(
+        grad: FloatTensor<Self>,
+        idx: IntTensor<Self>,
+        rows: usize,
+    ) -> FloatTensor<Self> {
+        composed::scatter_add_rows::<Self>(grad, idx, rows)
+    }
+}
+
+/// The CPU backends' implementation: the host kernels (`host.rs` bridges their f32 storage),
+/// each falling back to its composed body for another dtype. One body for both backends.
+macro_rules! host_kernels {
+    ($backend:ty) => {
+        impl GgptKernels for $backend {
+            fn gelu_exact(x: FloatTensor<Self>) -> FloatTensor<Self> {
+                host::map::<Self>(x, gelu::gelu_slice).unwrap_or_else(composed::gelu::<Self>)
+            }
+
+            fn gelu_exact_backward(
+                x: FloatTensor<Self>,
+                grad: FloatTensor<Self>,
+            ) -> FloatTensor<Self> {
+                host::zip::<Self>(x, grad, gelu::gelu_backward_slice)
+                    .unwrap_or_else(|(x, g)| composed::gelu_backward::<Self>(x, g))
+            }
+
+            fn layer_norm_rows_backward(
+                x: FloatTensor<Self>,
+                gamma: FloatTensor<Self>,
+                grad: FloatTensor<Self>,
+                eps: f64,
+            ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+                norm::layer_norm_backward_host::<Self>(x, gamma, grad, eps)
+                    .unwrap_or_else(|(x, g, d)| composed::layer_norm_backward::<Self>(x, g, d, eps))
+            }
+        }
+    };
+}
+
+#[cfg(feature = "flex")]
+host_kernels!(burn::backend::Flex);
+#[cfg(feature = "ndarray")]
+host_kernels!(burn::backend::NdArray);
+
+/// The CubeCL runtimes (wgpu, CUDA): the composed bodies, except the row scatter.
+#[cfg(any(feature = "wgpu", feature = "cuda"))]
+impl GgptKernels for burn::backend::Cube {
+    /// A `scatter` with an expanded index (an atomic add per element): Burn 0.22.1's CubeCL
+    /// `select_assign` loops serially per column (burn-notes.md).
+    fn scatter_add_rows(
+        grad: FloatTensor<Self>,
+        idx: IntTensor<Self>,
+        rows: usize,
+    ) -> FloatTensor<Self> {
+        rows::scatter_add_rows_atomic::<Self>(grad, idx, rows)
+    }
+}
+
+/// Exact GELU of `x`, any shape, on any backend ([`GgptKernels::gelu_exact`]).
+pub fn gelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
+    Tensor::from_dispatch(<Dispatch as GgptKernels>::gelu_exact(x.into_dispatch()))
+}
+
+/// LayerNorm of `x [N, C]` with the affine `gamma [C]`, `beta [C]` (`None`: zero), epsilon
+/// `eps`, on any backend ([`GgptKernels::layer_norm_rows`]; its backward is
+/// [`GgptKernels::layer_norm_rows_backward`]).
+pub fn layer_norm(x: Tensor<2>, gamma: Tensor<1>, beta: Option<Tensor<1>>, eps: f64) -> Tensor<2> {
+    let beta = beta.unwrap_or_else(|| gamma.zeros_like());
+    Tensor::from_dispatch(<Dispatch as GgptKernels>::layer_norm_rows(
+        x.into_dispatch(),
+        gamma.into_dispatch(),
+        beta.into_dispatch(),
+        eps,
+    ))
+}
+
+/// `x[idx]` along rows: `x [N, C]`, `idx [M]` -> `[M, C]` ([`GgptKernels::gather_rows`]; its
+/// backward is [`GgptKernels::scatter_add_rows`]).
+pub fn gather_rows(x: Tensor<2>, idx: Tensor<1, Int>) -> Tensor<2> {
+    Tensor::from_dispatch(<Dispatch as GgptKernels>::gather_rows(
+        x.into_dispatch(),
+        idx.into_dispatch(),
+    ))
+}
+
+#[cfg(test)]
+mod tests;

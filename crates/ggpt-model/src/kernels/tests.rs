@@ -1,0 +1,285 @@
+//! Each op of the kernel layer against its definition: the host kernels against the composed
+//! default body, and the op's `Backward` against autodiff of the composed body, on both CPU
+//! backends; GELU against an f64 reference.
+
+use burn::backend::Dispatch;
+use burn::tensor::{Device, Int, Tensor, TensorData};
+
+use super::{GgptKernels, composed, gather_rows, gelu, layer_norm};
+
+/// erf in f64 (Abramowitz-Stegun 7.1.26 is too coarse; use a series / continued fraction).
+fn erf64(x: f64) -> f64 {
+    // Taylor series converges well for |x| < 3; beyond, 1 - erfc asymptotics are ~1.
+    if x.abs() > 5.0 {
+        return x.signum();
+    }
+    let mut sum: f64 = 0.0;
+    let mut term = x;
+    let mut n = 0.0;
+    while term.abs() > 1e-17 * sum.abs().max(1e-300) || n < 5.0 {
+        sum += term / (2.0 * n + 1.0);
+        n += 1.0;
+        term *= -x * x / n;
+        if n > 200.0 {
+            break;
+        }
+    }
+    sum * 2.0 / std::f64::consts::PI.sqrt()
+}
+
+/// The CPU devices under test, with autodiff (pushed one by one: each is behind its feature).
+#[allow(clippy::vec_init_then_push)]
+fn devices() -> Vec<Device> {
+    let mut out = Vec::new();
+    #[cfg(feature = "flex")]
+    out.push(Device::flex().autodiff());
+    #[cfg(feature = "ndarray")]
+    out.push(Device::ndarray().autodiff());
+    out
+}
+
+fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().convert::<f32>().to_vec().expect("f32")
+}
+
+/// Deterministic values in `[-4, 4)`: a fixed LCG.
+fn spread(n: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+    (0..n)
+        .map(|_| {
+            s = s
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            ((s >> 40) as f32 / (1u64 << 24) as f32) * 8.0 - 4.0
+        })
+        .collect()
+}
+
+fn assert_close(got: &[f32], want: &[f32], tol: f32, what: &str) {
+    assert_eq!(got.len(), want.len(), "{what}: length");
+    for (i, (g, w)) in got.iter().zip(want).enumerate() {
+        assert!(
+            (g - w).abs() <= tol * (1.0 + w.abs()),
+            "{what}[{i}]: {g} vs {w}"
+        );
+    }
+}
+
+/// The composed GELU as a tensor expression (autodiff differentiates it op by op).
+fn composed_gelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
+    Tensor::from_dispatch(composed::gelu::<Dispatch>(x.into_dispatch()))
+}
+
+#[test]
+fn gelu_forward_and_gradient_are_exact() {
+    for device in devices() {
+        let xs: Vec<f32> = (-40..=40).map(|i| i as f32 * 0.1).collect();
+        let n = xs.len();
+        let x = Tensor::<1>::from_data(TensorData::new(xs.clone(), [n]), &device).require_grad();
+        let y = gelu(x.clone());
+        let grads = y.clone().sum().backward();
+        let gx = values(x.grad(&grads).expect("grad"));
+        let yv = values(y);
+        for (i, &xi) in xs.iter().enumerate() {
+            let x64 = xi as f64;
+            let want = 0.5 * x64 * (1.0 + erf64(x64 / 2f64.sqrt()));
+            let dwant = 0.5 * (1.0 + erf64(x64 / 2f64.sqrt()))
+                + x64 * (-x64 * x64 / 2.0).exp() / (2.0 * std::f64::consts::PI).sqrt();
+            assert!(
+                (yv[i] as f64 - want).abs() < 2e-6,
+                "{device:?} gelu({xi}) = {} want {want}",
+                yv[i]
+            );
+            assert!(
+                (gx[i] as f64 - dwant).abs() < 2e-6,
+                "{device:?} gelu'({xi}) = {} want {dwant}",
+                gx[i]
+            );
+        }
+    }
+}
+
+#[test]
+fn gelu_backward_equals_autodiff_of_the_composed_body() {
+    for device in devices() {
+        let (n, c) = (37, 11);
+        let xs = spread(n * c, 1);
+        let ws = spread(n * c, 2);
+        let w = Tensor::<2>::from_data(TensorData::new(ws, [n, c]), &device);
+        let run = |f: &dyn Fn(Tensor<2>) -> Tensor<2>| {
+            let x =
+                Tensor::<2>::from_data(TensorData::new(xs.clone(), [n, c]), &device).require_grad();
+            let y = f(x.clone());
+            let grads = (y.clone() * w.clone()).sum().backward();
+            (values(y), values(x.grad(&grads).expect("grad")))
+        };
+        let (y_op, g_op) = run(&|x| gelu(x));
+        let (y_ref, g_ref) = run(&|x| composed_gelu(x));
+        assert_close(&y_op, &y_ref, 1e-6, "gelu forward");
+        assert_close(&g_op, &g_ref, 1e-6, "gelu backward");
+    }
+}
+
+#[test]
+fn gelu_without_a_graph_equals_the_composed_body() {
+    for device in devices() {
+        let device = device.inner();
+        let xs = spread(4099, 3);
+        let x = Tensor::<1>::from_data(TensorData::new(xs.clone(), [xs.len()]), &device);
+        assert_close(
+            &values(gelu(x.clone())),
+            &values(composed_gelu(x)),
+            1e-6,
+            "gelu",
+        );
+        // A strided (non-contiguous) input goes through the same kernel.
+        let m = Tensor::<1>::from_data(TensorData::new(xs[..4096].to_vec(), [4096]), &device)
+            .reshape([64, 64])
+            .transpose();
+        assert_close(
+            &values(gelu(m.clone())),
+            &values(composed_gelu(m)),
+            1e-6,
+            "strided gelu",
+        );
+    }
+}
+
+#[test]
+fn gather_rows_backward_sums_repeated_rows() {
+    for device in devices() {
+        let (n, c) = (5, 3);
+        let xs = spread(n * c, 4);
+        let idx = [0i64, 2, 2, 4, 0, 1, 0];
+        let m = idx.len();
+        let ws = spread(m * c, 5);
+        let w = Tensor::<2>::from_data(TensorData::new(ws.clone(), [m, c]), &device);
+        let run = |f: &dyn Fn(Tensor<2>, Tensor<1, Int>) -> Tensor<2>| {
+            let x =
+                Tensor::<2>::from_data(TensorData::new(xs.clone(), [n, c]), &device).require_grad();
+            let i = Tensor::<1, Int>::from_data(TensorData::new(idx.to_vec(), [m]), &device);
+            let y = f(x.clone(), i);
+            let grads = (y.clone() * w.clone()).sum().backward();
+            (values(y), values(x.grad(&grads).expect("grad")))
+        };
+        let (y_op, g_op) = run(&|x, i| gather_rows(x, i));
+        let (y_ref, g_ref) = run(&|x, i| x.select(0, i));
+        assert_eq!(y_op, y_ref, "gather forward");
+        assert_close(&g_op, &g_ref, 1e-6, "gather backward");
+        // By hand: row r receives the sum of the weights of the picks of r.
+        let mut want = vec![0.0f32; n * c];
+        for (k, &r) in idx.iter().enumerate() {
+            for j in 0..c {
+                want[r as usize * c + j] += ws[k * c + j];
+            }
+        }
+        assert_close(&g_op, &want, 1e-6, "gather backward by hand");
+    }
+}
+
+#[test]
+fn the_atomic_row_scatter_equals_the_default() {
+    for device in devices() {
+        let device = device.inner();
+        let (m, c, rows) = (9, 4, 6);
+        let g = Tensor::<2>::from_data(TensorData::new(spread(m * c, 6), [m, c]), &device);
+        let idx = Tensor::<1, Int>::from_data(
+            TensorData::new(vec![5i64, 0, 0, 3, 5, 1, 2, 0, 4], [m]),
+            &device,
+        );
+        let default = Tensor::<2>::from_dispatch(<Dispatch as GgptKernels>::scatter_add_rows(
+            g.clone().into_dispatch(),
+            idx.clone().into_dispatch(),
+            rows,
+        ));
+        let atomic = Tensor::<2>::from_dispatch(super::rows::scatter_add_rows_atomic::<Dispatch>(
+            g.into_dispatch(),
+            idx.into_dispatch(),
+            rows,
+        ));
+        assert_close(&values(atomic), &values(default), 1e-6, "row scatter");
+    }
+}
+
+#[test]
+fn layer_norm_backward_equals_autodiff_of_the_composed_body() {
+    for device in devices() {
+        let (n, c) = (29, 13);
+        let eps = 1e-5;
+        let xs: Vec<f32> = spread(n * c, 7).iter().map(|v| v * 3.0 + 1.0).collect();
+        let gs = spread(c, 8);
+        let bs = spread(c, 9);
+        let w = Tensor::<2>::from_data(TensorData::new(spread(n * c, 10), [n, c]), &device);
+        let run = |f: &dyn Fn(Tensor<2>, Tensor<1>, Tensor<1>) -> Tensor<2>| {
+            let x =
+                Tensor::<2>::from_data(TensorData::new(xs.clone(), [n, c]), &device).require_grad();
+            let g =
+                Tensor::<1>::from_data(TensorData::new(gs.clone(), [c]), &device).require_grad();
+            let b =
+                Tensor::<1>::from_data(TensorData::new(bs.clone(), [c]), &device).require_grad();
+            let y = f(x.clone(), g.clone(), b.clone());
+            let grads = (y.clone() * w.clone()).sum().backward();
+            (
+                values(y),
+                values(x.grad(&grads).expect("dx")),
+                values(g.grad(&grads).expect("dgamma")),
+                values(b.grad(&grads).expect("dbeta")),
+            )
+        };
+        let op = run(&|x, g, b| layer_norm(x, g, Some(b), eps));
+        // Burn's LayerNorm under autodiff: differentiated op by op.
+        let reference = run(&|x, g, b| burn::tensor::module::layer_norm(x, g, Some(b), eps));
+        assert_close(&op.0, &reference.0, 1e-5, "layer norm forward");
+        assert_close(&op.1, &reference.1, 1e-5, "layer norm dx");
+        assert_close(&op.2, &reference.2, 1e-5, "layer norm dgamma");
+        assert_close(&op.3, &reference.3, 1e-5, "layer norm dbeta");
+        // The composed backward body (what CubeCL runs) agrees with the host backward.
+        let inner = device.clone().inner();
+        let x = Tensor::<2>::from_data(TensorData::new(xs.clone(), [n, c]), &inner);
+        let g = Tensor::<1>::from_data(TensorData::new(gs.clone(), [c]), &inner);
+        let dy = w.clone().inner();
+        let (dx, dg, db) = composed::layer_norm_backward::<Dispatch>(
+            x.into_dispatch(),
+            g.into_dispatch(),
+            dy.into_dispatch(),
+            eps,
+        );
+        assert_close(
+            &values(Tensor::<2>::from_dispatch(dx)),
+            &op.1,
+            1e-5,
+            "composed dx",
+        );
+        assert_close(
+            &values(Tensor::<1>::from_dispatch(dg)),
+            &op.2,
+            1e-5,
+            "composed dgamma",
+        );
+        assert_close(
+            &values(Tensor::<1>::from_dispatch(db)),
+            &op.3,
+            1e-5,
+            "composed dbeta",
+        );
+    }
+}
+
+#[test]
+fn untracked_inputs_on_an_autodiff_device_stay_on_it() {
+    for device in devices() {
+        let (n, c) = (6, 5);
+        let x = Tensor::<2>::from_data(TensorData::new(spread(n * c, 11), [n, c]), &device);
+        let g = Tensor::<1>::ones([c], &device);
+        let y = layer_norm(gelu(x), g, None, 1e-5);
+        assert_eq!(
+            y.device(),
+            device,
+            "an untracked op result keeps the autodiff device"
+        );
+        // ... and combines with a tracked tensor into a graph that reaches the tracked leaf.
+        let t = Tensor::<2>::ones([n, c], &device).require_grad();
+        let grads = (y * t.clone()).sum().backward();
+        assert!(t.grad(&grads).is_some());
+    }
+}
