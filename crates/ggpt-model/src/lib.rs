@@ -16,6 +16,7 @@ pub mod device;
 pub mod device_stats;
 pub mod drop_path;
 pub mod error;
+pub mod grads;
 pub mod head;
 pub mod host_attention;
 pub mod host_attention_grad;

@@ -28,9 +28,9 @@
 //!
 //! Cost: one extra forward per step (no graph), against a graph bounded by the largest segment.
 
-use burn::module::{Module, ModuleVisitor, Param, ParamId};
+use burn::module::Module;
 use burn::optim::GradientsParams;
-use burn::tensor::{Device, Distribution, Gradients, Tensor};
+use burn::tensor::{Device, Distribution, Tensor};
 
 use crate::attention::SCORE_BUDGET_FLOATS;
 use crate::drop_path::{self, MaskRngState};
@@ -134,7 +134,7 @@ fn run<T, E>(
     let mut grads = profile::scope(|| "step.backward.head".to_string(), || loss.backward());
     add_slot_grad(&mut slot_grads, y_slot, y.grad_remove(&mut grads));
     add_slot_grad(&mut slot_grads, feat_slot, feat.grad_remove(&mut grads));
-    collect_param_grads(model, &mut grads, &mut acc);
+    crate::grads::collect(model, &mut grads, &mut acc);
     drop(grads);
 
     for (k, seg) in program.segments.iter().enumerate().rev() {
@@ -194,13 +194,13 @@ fn run<T, E>(
                 }
                 d.vectors
                     .into_iter()
-                    .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                    .for_each(|(id, g)| crate::grads::accumulate(&mut acc, id, g));
                 d.matrices
                     .into_iter()
-                    .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                    .for_each(|(id, g)| crate::grads::accumulate(&mut acc, id, g));
                 d.kernels
                     .into_iter()
-                    .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                    .for_each(|(id, g)| crate::grads::accumulate(&mut acc, id, g));
                 continue;
             }
             drop_path::restore_mask_rng(&rng_before[k]);
@@ -218,7 +218,7 @@ fn run<T, E>(
         for (i, t) in &leaves {
             add_slot_grad(&mut slot_grads, *i, t.grad_remove(&mut grads));
         }
-        collect_param_grads(model, &mut grads, &mut acc);
+        crate::grads::collect(model, &mut grads, &mut acc);
     }
     Ok((acc, extra))
 }
@@ -264,32 +264,6 @@ fn add_slot_grad(slot_grads: &mut [Option<Tensor<2>>], i: usize, g: Option<Tenso
     }
 }
 
-/// Moves the gradient of every parameter of `model` present in `grads` into `acc`, adding it
-/// to what `acc` already holds for that parameter.
-fn collect_param_grads(model: &Ggpt, grads: &mut Gradients, acc: &mut GradientsParams) {
-    struct Collect<'a> {
-        grads: &'a mut Gradients,
-        acc: &'a mut GradientsParams,
-    }
-    impl ModuleVisitor for Collect<'_> {
-        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-            if let Some(g) = param.val().grad_remove(self.grads) {
-                add_param_grad(self.acc, param.id, g);
-            }
-        }
-    }
-    model.visit(&mut Collect { grads, acc });
-}
-
-/// Adds `g` to the gradient `acc` holds for parameter `id`.
-fn add_param_grad<const D: usize>(acc: &mut GradientsParams, id: ParamId, g: Tensor<D>) {
-    let g = match acc.remove::<D>(id) {
-        Some(prev) => prev + g,
-        None => g,
-    };
-    acc.register::<D>(id, g);
-}
-
 /// Whether some block of `model` would drop paths in this forward.
 fn has_active_drop_path(model: &Ggpt) -> bool {
     model
@@ -321,6 +295,7 @@ mod tests {
     use crate::bench::surface_chunk;
     use crate::infer::prepare_chunks;
     use crate::segments::Stage;
+    use burn::module::{ModuleVisitor, Param};
 
     /// The tests seed and draw from the shared ndarray device RNG: one at a time.
     fn rng_lock() -> std::sync::MutexGuard<'static, ()> {
@@ -539,7 +514,7 @@ mod tests {
                     );
                 }
                 let mut want = GradientsParams::new();
-                collect_param_grads(&model, &mut grads, &mut want);
+                crate::grads::collect(&model, &mut grads, &mut want);
                 let want = flat(&model, &want);
                 // the kept intermediate, as the graph-free forward computes it
                 let kept = match part {
@@ -582,13 +557,13 @@ mod tests {
                     let mut acc = GradientsParams::new();
                     d.vectors
                         .into_iter()
-                        .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                        .for_each(|(id, g)| crate::grads::accumulate(&mut acc, id, g));
                     d.matrices
                         .into_iter()
-                        .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                        .for_each(|(id, g)| crate::grads::accumulate(&mut acc, id, g));
                     d.kernels
                         .into_iter()
-                        .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                        .for_each(|(id, g)| crate::grads::accumulate(&mut acc, id, g));
                     let got = flat(&model, &acc);
                     let mut compared = 0;
                     for ((name, w), (_, got)) in want.iter().zip(&got) {
@@ -652,7 +627,7 @@ mod tests {
             let mut grads = (y * g.clone().autodiff()).sum().backward();
             let want_x = read_tensor_f32(&xa.grad_remove(&mut grads).unwrap(), "x").unwrap();
             let mut want = GradientsParams::new();
-            collect_param_grads(&model, &mut grads, &mut want);
+            crate::grads::collect(&model, &mut grads, &mut want);
             let want = flat(&model, &want);
             let kept = frozen_blocks[block]
                 .attn_part_with_core(x.clone().autodiff(), level, &mut rec, "enc0.block")
@@ -669,10 +644,10 @@ mod tests {
                 let mut acc = GradientsParams::new();
                 d.vectors
                     .into_iter()
-                    .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                    .for_each(|(id, g)| crate::grads::accumulate(&mut acc, id, g));
                 d.matrices
                     .into_iter()
-                    .for_each(|(id, g)| add_param_grad(&mut acc, id, g));
+                    .for_each(|(id, g)| crate::grads::accumulate(&mut acc, id, g));
                 let got = flat(&model, &acc);
                 let mut compared = 0;
                 for ((name, w), (_, got)) in want.iter().zip(&got) {
