@@ -120,7 +120,8 @@ fn run_replica(
         tokens += batch.num_tokens;
         acc = Some(match acc {
             None => g,
-            Some(a) => add_gradients(&replica, a, g),
+            // summed in micro-batch order: steps are reproducible
+            Some(a) => ggpt_model::grads::add(&replica, a, g),
         });
     }
     ggpt_model::drop_path::seed_drop_path(None);
@@ -144,12 +145,6 @@ fn run_replica(
         tokens,
         running,
     })
-}
-
-/// `a + b` for every parameter of `model` (a missing side counts as 0). Summation order is
-/// fixed (replica / micro-batch order), so steps are reproducible.
-fn add_gradients(model: &Ggpt, a: GradientsParams, b: GradientsParams) -> GradientsParams {
-    ggpt_model::grads::add(model, a, b)
 }
 
 /// One data-parallel optimisation step (`docs/training.md`, data parallelism): the global
@@ -248,7 +243,8 @@ pub fn parallel_step(
         running.push(r.running);
         grads = Some(match grads {
             None => r.grads,
-            Some(a) => add_gradients(&model, a, r.grads),
+            // summed in replica order: steps are reproducible
+            Some(a) => ggpt_model::grads::add(&model, a, r.grads),
         });
     }
     let mut grads = grads.ok_or_else(|| TrainError::Invalid("no gradients".into()))?;
