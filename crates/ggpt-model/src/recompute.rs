@@ -32,7 +32,6 @@ use burn::module::Module;
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Distribution, Tensor};
 
-use crate::attention::SCORE_BUDGET_FLOATS;
 use crate::drop_path::{self, MaskRngState};
 use crate::model::{Ggpt, GgptOutput};
 use crate::norm;
@@ -101,15 +100,7 @@ fn run<T, E>(
             || format!("step.forward.{}", op_kind(seg.op)),
             || frozen.run_segment_keeping_core(batch, seg.op, &args, &mut rec),
         );
-        // (other devices keep only the attention core, which their grouped backward takes)
-        let is_attn = matches!(
-            seg.op,
-            Op::Block {
-                part: BlockPart::Attn,
-                ..
-            }
-        );
-        if host_kernels || is_attn {
+        if host_kernels {
             kept[k] = core.map(Tensor::without_autodiff);
         }
         for (&o, t) in seg.outputs.iter().zip(outs) {
@@ -162,9 +153,10 @@ fn run<T, E>(
             .collect();
         drop_path::restore_mask_rng(&rng_before[k]);
         if let (Op::Block { stage, block, part }, [Some(g)]) = (seg.op, out_grads.as_slice()) {
-            // CPU devices: the block parts differentiated on the host (no graph, no score
-            // tensor, no per-tap weight slices, multi-threaded element-wise passes). Other
-            // devices: the attention part with its core one window sub-group at a time.
+            // CPU devices: the block parts differentiated on the host (no graph, no per-tap
+            // weight slices, multi-threaded element-wise passes). Other devices re-run the
+            // segment under autodiff (below); the attention core's `Backward` bounds its
+            // score tensors itself (crate::kernels::attention).
             let (blocks, level) = model.stage_blocks(batch, stage);
             let b = &blocks[block];
             let input = |j: usize| slot(&values, seg.inputs[j], &device);
@@ -176,16 +168,6 @@ fn run<T, E>(
                     b.attn_part_backward(input(0), g.clone(), level, kept[k].take())
                 }
                 (BlockPart::Mlp, true) => b.mlp_part_backward(input(0), g.clone()),
-                (BlockPart::Attn, false) => {
-                    let core = kept[k].take();
-                    b.attn_part_backward_grouped(
-                        input(0),
-                        g.clone(),
-                        level,
-                        core,
-                        SCORE_BUDGET_FLOATS,
-                    )
-                }
                 (_, false) => None,
             };
             if let Some(d) = d {
@@ -574,90 +556,6 @@ mod tests {
                     }
                     assert!(compared >= 4, "{label}: {compared} parameter gradients");
                 }
-            }
-        }
-        drop_path::seed_drop_path(None);
-    }
-
-    /// The grouped attention backward of GPU devices (tensor ops, one window sub-group at a
-    /// time) equals autodiff of the whole part, with and without the kept core, one window per
-    /// sub-group and all windows in one, with and without drop path.
-    #[test]
-    fn grouped_attention_backward_equals_autodiff_of_the_part() {
-        let _rng = rng_lock();
-        let device = crate::device::device_from_name("ndarray")
-            .unwrap()
-            .autodiff();
-        let host = device.clone().without_autodiff();
-        let mut cfg = GgptConfig::tiny();
-        cfg.drop_path = 0.3;
-        host.seed(5);
-        let model = Ggpt::new(&cfg, &host).fork(&device).train();
-        let batch = prepare_chunks(&cfg, &[surface_chunk(400, 6)], &device).unwrap();
-        let stage = Stage::Enc(0);
-        let (blocks, level) = model.stage_blocks(&batch, stage);
-        let windows: usize = level.attn[blocks[0].order_row]
-            .groups
-            .iter()
-            .map(|g| g.num_windows)
-            .sum();
-        assert!(windows >= 2, "{windows} windows: the test needs several");
-        let active = blocks
-            .iter()
-            .position(|b| b.drop_path.prob > 0.0)
-            .expect("a block with drop path");
-        let frozen = model.clone().no_grad();
-        let (frozen_blocks, _) = frozen.stage_blocks(&batch, stage);
-        let c = blocks[0].norm1.gamma.val().dims()[0];
-        let random = |seed: u64| {
-            host.seed(seed);
-            Tensor::<2>::random(
-                [level.num_tokens, c],
-                Distribution::Uniform(-1.0, 1.0),
-                &host,
-            )
-        };
-        let (x, g) = (random(11), random(12));
-        for block in [0, active] {
-            let b = &blocks[block];
-            drop_path::seed_drop_path(Some(9));
-            let xa = x.clone().autodiff().require_grad();
-            let mut rec = Recorder::disabled();
-            let y = b.attn_part(xa.clone(), level, &mut rec, "enc0.block");
-            let mut grads = (y * g.clone().autodiff()).sum().backward();
-            let want_x = read_tensor_f32(&xa.grad_remove(&mut grads).unwrap(), "x").unwrap();
-            let mut want = GradientsParams::new();
-            crate::grads::collect(&model, &mut grads, &mut want);
-            let want = flat(&model, &want);
-            let kept = frozen_blocks[block]
-                .attn_part_with_core(x.clone().autodiff(), level, &mut rec, "enc0.block")
-                .1
-                .without_autodiff();
-            for (budget, core) in [(1, Some(kept)), (SCORE_BUDGET_FLOATS, None)] {
-                let label = format!("block {block}, budget {budget}");
-                drop_path::seed_drop_path(Some(9));
-                let d = b
-                    .attn_part_backward_grouped(x.clone(), g.clone(), level, core, budget)
-                    .expect("grouped backward");
-                let got_x = read_tensor_f32(&d.inputs[0], "d x").unwrap();
-                assert_close(&format!("{label} input"), &want_x, &got_x);
-                let mut acc = GradientsParams::new();
-                d.vectors
-                    .into_iter()
-                    .for_each(|(id, g)| crate::grads::accumulate(&mut acc, id, g));
-                d.matrices
-                    .into_iter()
-                    .for_each(|(id, g)| crate::grads::accumulate(&mut acc, id, g));
-                let got = flat(&model, &acc);
-                let mut compared = 0;
-                for ((name, w), (_, got)) in want.iter().zip(&got) {
-                    if w.is_empty() {
-                        continue;
-                    }
-                    assert_close(&format!("{label} {name}"), w, got);
-                    compared += 1;
-                }
-                assert_eq!(compared, 6, "{label}: LN1 (2), qkv (2), proj (2)");
             }
         }
         drop_path::seed_drop_path(None);

@@ -12,6 +12,7 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind, unary};
 use burn::backend::tensor::{FloatTensor, IntTensor};
 
 use super::GgptKernels;
+use crate::host_attention::WindowShape;
 
 /// The backward of `gelu`; state: the input `x`.
 #[derive(Debug)]
@@ -79,7 +80,44 @@ impl<B: GgptKernels> Backward<B, 3> for LayerNormBackward {
     }
 }
 
+/// The backward of `window_attention`; state: the projection rows and the window shape (the
+/// probabilities are recomputed by the backward: no `[W, H, L, L]` tensor is kept).
+#[derive(Debug)]
+struct WindowAttentionBackward;
+
+impl<B: GgptKernels> Backward<B, 1> for WindowAttentionBackward {
+    type State = (FloatTensor<B>, WindowShape);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let (rows, shape) = ops.state;
+        unary::<B, _>(ops.parents, ops.node, grads, |grad| {
+            B::window_attention_backward(rows, grad, shape)
+        });
+    }
+}
+
 impl<B: GgptKernels, C: CheckpointStrategy> GgptKernels for Autodiff<B, C> {
+    fn window_attention(rows: FloatTensor<Self>, shape: WindowShape) -> FloatTensor<Self> {
+        match WindowAttentionBackward
+            .prepare::<C>([rows.node()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let rows = rows.into_primitive();
+                prep.finish((rows.clone(), shape), B::window_attention(rows, shape))
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(B::window_attention(rows.into_primitive(), shape))
+            }
+        }
+    }
+
     fn layer_norm_rows(
         x: FloatTensor<Self>,
         gamma: FloatTensor<Self>,

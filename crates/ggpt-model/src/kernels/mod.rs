@@ -25,6 +25,7 @@
 // the extension macro names it in generated code that an item attribute does not reach.
 #![allow(deprecated)]
 
+pub mod attention;
 mod autodiff;
 pub mod composed;
 mod gelu;
@@ -36,6 +37,9 @@ use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{Backend, Dispatch, backend_extension};
 use burn::tensor::{Int, Tensor};
 
+use crate::host_attention::WindowShape;
+
+pub use attention::SCORE_BUDGET_FLOATS;
 pub use gelu::{gelu_derivative, gelu_in_place, gelu_value};
 
 /// GGPT's operations, one implementation per backend type (module docs).
@@ -80,6 +84,24 @@ pub trait GgptKernels: Backend {
         composed::layer_norm_backward::<Self>(x, gamma, grad, eps)
     }
 
+    /// The window-attention core (network.md §7, [`attention`]): `rows [W L, 3C]` (the `qkv`
+    /// projection of the gathered tokens of `shape.windows` windows) `-> [W L, C]`, every row
+    /// `softmax((q s) kᵀ) v` over its own window, `s = d^-1/2`. `rows` must have
+    /// `shape.windows · shape.len` rows and `3 shape.channels()` columns.
+    fn window_attention(rows: FloatTensor<Self>, shape: WindowShape) -> FloatTensor<Self> {
+        attention::window_attention::<Self>(rows, shape, SCORE_BUDGET_FLOATS)
+    }
+
+    /// The backward of [`GgptKernels::window_attention`]: `rows [W L, 3C]` and the output
+    /// gradient `grad [W L, C]` -> `d rows [W L, 3C]`.
+    fn window_attention_backward(
+        rows: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        shape: WindowShape,
+    ) -> FloatTensor<Self> {
+        attention::window_attention_backward::<Self>(rows, grad, shape, SCORE_BUDGET_FLOATS)
+    }
+
     /// Rows of `x [N, C]` picked by `idx [M]` (values in `0..N`): `[M, C]`.
     fn gather_rows(x: FloatTensor<Self>, idx: IntTensor<Self>) -> FloatTensor<Self> {
         Self::float_select(x, 0, idx)
@@ -122,6 +144,29 @@ macro_rules! host_kernels {
                 norm::layer_norm_backward_host::<Self>(x, gamma, grad, eps)
                     .unwrap_or_else(|(x, g, d)| composed::layer_norm_backward::<Self>(x, g, d, eps))
             }
+
+            fn window_attention(rows: FloatTensor<Self>, shape: WindowShape) -> FloatTensor<Self> {
+                attention::window_attention_host::<Self>(rows, shape).unwrap_or_else(|rows| {
+                    attention::window_attention::<Self>(rows, shape, SCORE_BUDGET_FLOATS)
+                })
+            }
+
+            fn window_attention_backward(
+                rows: FloatTensor<Self>,
+                grad: FloatTensor<Self>,
+                shape: WindowShape,
+            ) -> FloatTensor<Self> {
+                attention::window_attention_backward_host::<Self>(rows, grad, shape).unwrap_or_else(
+                    |(rows, grad)| {
+                        attention::window_attention_backward::<Self>(
+                            rows,
+                            grad,
+                            shape,
+                            SCORE_BUDGET_FLOATS,
+                        )
+                    },
+                )
+            }
         }
     };
 }
@@ -134,6 +179,16 @@ host_kernels!(burn::backend::NdArray);
 /// The CubeCL runtimes (wgpu, CUDA): the composed bodies, except the row scatter.
 #[cfg(any(feature = "wgpu", feature = "cuda"))]
 impl GgptKernels for burn::backend::Cube {
+    /// Burn's fused attention where its autotune can pick the flash kernel
+    /// ([`attention::FLASH_REACHABLE`]); otherwise the composed body.
+    fn window_attention(rows: FloatTensor<Self>, shape: WindowShape) -> FloatTensor<Self> {
+        if attention::FLASH_REACHABLE {
+            attention::window_attention_fused::<Self>(rows, shape)
+        } else {
+            attention::window_attention::<Self>(rows, shape, SCORE_BUDGET_FLOATS)
+        }
+    }
+
     /// A `scatter` with an expanded index (an atomic add per element): Burn 0.22.1's CubeCL
     /// `select_assign` loops serially per column (burn-notes.md).
     fn scatter_add_rows(
@@ -160,6 +215,22 @@ pub fn layer_norm(x: Tensor<2>, gamma: Tensor<1>, beta: Option<Tensor<1>>, eps: 
         gamma.into_dispatch(),
         beta.into_dispatch(),
         eps,
+    ))
+}
+
+/// The window-attention core of `rows [W L, 3C]` -> `[W L, C]` on any backend
+/// ([`GgptKernels::window_attention`]; its backward is
+/// [`GgptKernels::window_attention_backward`]). `rows` must be `[shape.windows · shape.len,
+/// 3 shape.channels()]` (built by the attention layer from its own sizes).
+pub fn window_attention(rows: Tensor<2>, shape: WindowShape) -> Tensor<2> {
+    debug_assert_eq!(
+        rows.dims(),
+        [shape.windows * shape.len, 3 * shape.channels()],
+        "window attention rows"
+    );
+    Tensor::from_dispatch(<Dispatch as GgptKernels>::window_attention(
+        rows.into_dispatch(),
+        shape,
     ))
 }
 

@@ -5,7 +5,11 @@
 use burn::backend::Dispatch;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
-use super::{GgptKernels, composed, gather_rows, gelu, layer_norm};
+use super::{
+    GgptKernels, SCORE_BUDGET_FLOATS, attention, composed, gather_rows, gelu, layer_norm,
+    window_attention,
+};
+use crate::host_attention::WindowShape;
 
 /// erf in f64 (Abramowitz-Stegun 7.1.26 is too coarse; use a series / continued fraction).
 fn erf64(x: f64) -> f64 {
@@ -282,4 +286,124 @@ fn untracked_inputs_on_an_autodiff_device_stay_on_it() {
         let grads = (y * t.clone()).sum().backward();
         assert!(t.grad(&grads).is_some());
     }
+}
+
+/// A window shape with several windows and heads, its rows `[W L, 3C]` and an output weight
+/// `[W L, C]` (the surrogate loss `Σ w ⊙ out`).
+fn attention_case(seed: u64) -> (WindowShape, Vec<f32>, Vec<f32>) {
+    let shape = WindowShape {
+        windows: 3,
+        len: 20,
+        heads: 2,
+        head_dim: 8,
+    };
+    let m = shape.windows * shape.len;
+    // rows in [-1, 1): scores of a realistic spread
+    let rows = spread(m * 3 * shape.channels(), seed)
+        .into_iter()
+        .map(|v| v / 4.0)
+        .collect();
+    (shape, rows, spread(m * shape.channels(), seed + 1))
+}
+
+/// `(out, d rows)` of `f(rows)` under autodiff with the surrogate loss `Σ w ⊙ out`.
+fn attention_grads(
+    device: &Device,
+    shape: WindowShape,
+    rows: &[f32],
+    w: &[f32],
+    f: &dyn Fn(Tensor<2>) -> Tensor<2>,
+) -> (Vec<f32>, Vec<f32>) {
+    let m = shape.windows * shape.len;
+    let c = shape.channels();
+    let x =
+        Tensor::<2>::from_data(TensorData::new(rows.to_vec(), [m, 3 * c]), device).require_grad();
+    let wt = Tensor::<2>::from_data(TensorData::new(w.to_vec(), [m, c]), device);
+    let y = f(x.clone());
+    let grads = (y.clone() * wt).sum().backward();
+    (values(y), values(x.grad(&grads).expect("grad")))
+}
+
+/// The composed attention as a tensor expression with a score budget.
+fn composed_attention(rows: Tensor<2>, shape: WindowShape, budget: usize) -> Tensor<2> {
+    Tensor::from_dispatch(attention::window_attention::<Dispatch>(
+        rows.into_dispatch(),
+        shape,
+        budget,
+    ))
+}
+
+/// The op (host kernels forward and backward under its `Backward`) equals autodiff of the
+/// composed body, whole and one window per sub-group.
+#[test]
+fn window_attention_backward_equals_autodiff_of_the_composed_body() {
+    for device in devices() {
+        let (shape, rows, w) = attention_case(7);
+        let (y_op, g_op) =
+            attention_grads(&device, shape, &rows, &w, &|x| window_attention(x, shape));
+        let per_window = shape.heads * shape.len * shape.len;
+        for budget in [SCORE_BUDGET_FLOATS, per_window] {
+            let (y_ref, g_ref) = attention_grads(&device, shape, &rows, &w, &|x| {
+                composed_attention(x, shape, budget)
+            });
+            assert_close(&y_op, &y_ref, 1e-5, "attention forward");
+            assert_close(&g_op, &g_ref, 1e-5, "attention backward");
+        }
+    }
+}
+
+/// The composed backward (what CubeCL runs), whole and one window per sub-group, equals
+/// autodiff of the composed forward.
+#[test]
+fn composed_attention_backward_equals_autodiff_of_the_composed_forward() {
+    for device in devices() {
+        let (shape, rows, w) = attention_case(9);
+        let (_, want) = attention_grads(&device, shape, &rows, &w, &|x| {
+            composed_attention(x, shape, SCORE_BUDGET_FLOATS)
+        });
+        let inner = device.inner();
+        let m = shape.windows * shape.len;
+        let c = shape.channels();
+        let per_window = shape.heads * shape.len * shape.len;
+        for budget in [SCORE_BUDGET_FLOATS, per_window, 2 * per_window] {
+            let x = Tensor::<2>::from_data(TensorData::new(rows.clone(), [m, 3 * c]), &inner);
+            let g = Tensor::<2>::from_data(TensorData::new(w.clone(), [m, c]), &inner);
+            let got = Tensor::<2>::from_dispatch(attention::window_attention_backward::<Dispatch>(
+                x.into_dispatch(),
+                g.into_dispatch(),
+                shape,
+                budget,
+            ));
+            assert_close(&values(got), &want, 1e-5, "composed attention backward");
+        }
+    }
+}
+
+/// Burn's fused attention, called as CubeCL inference calls it (`scale = None`), equals the
+/// composed `softmax((q s) kᵀ) v`: same layout, same scale.
+fn fused_attention_equals_composed_on(device: &Device) {
+    let (shape, rows, _) = attention_case(11);
+    let m = shape.windows * shape.len;
+    let x = Tensor::<2>::from_data(TensorData::new(rows, [m, 3 * shape.channels()]), device);
+    let fused = Tensor::<2>::from_dispatch(attention::window_attention_fused::<Dispatch>(
+        x.clone().into_dispatch(),
+        shape,
+    ));
+    let composed = composed_attention(x, shape, SCORE_BUDGET_FLOATS);
+    assert_close(&values(fused), &values(composed), 1e-5, "fused attention");
+}
+
+#[test]
+fn fused_attention_equals_the_composed_body() {
+    for device in devices() {
+        fused_attention_equals_composed_on(&device.inner());
+    }
+}
+
+/// The same on wgpu (Burn's fallback without the `autotune` feature, the flash kernel where
+/// autotune picks it).
+#[cfg(feature = "wgpu")]
+#[test]
+fn fused_attention_equals_the_composed_body_on_wgpu() {
+    fused_attention_equals_composed_on(&crate::device::device_from_name("wgpu").expect("wgpu"));
 }
