@@ -21,7 +21,8 @@
 
 use rayon::prelude::*;
 
-use crate::prepared::{ConvIndex, NUM_TAPS};
+use crate::conv_layout::{ConvLayout, NUM_TAPS};
+use crate::prepared::ConvIndex;
 use crate::readback::read_indices;
 
 /// Pairs per GEMM block (bounds the gathered buffers: `PAIR_BLOCK (2 C_in + C_out)` floats).
@@ -44,30 +45,48 @@ impl HostConvTables {
     /// Reads the tables of `index` back; `None` when they cannot be read or are inconsistent
     /// (an index out of range, tables of different lengths).
     pub fn read(index: &ConvIndex) -> Option<Self> {
-        let (n, g) = (index.num_tokens, index.num_groups);
-        let group_entries = match (&index.group_members, &index.group_ids) {
-            (Some(m), Some(ids)) if g > 0 => {
-                let (m, ids) = (read_indices(m)?, read_indices(ids)?);
-                if m.len() != ids.len() || m.iter().any(|&t| t >= n) || ids.iter().any(|&i| i >= g)
-                {
-                    return None;
-                }
-                m.into_iter().zip(ids).collect()
-            }
-            _ if g == 0 => Vec::new(),
-            _ => return None,
+        Self::from_packed(&read_indices(&index.tables)?, &index.layout)
+    }
+
+    /// The tables of the packed list `packed` read by `layout` ([`crate::conv_layout`]);
+    /// `None` when it is too short or inconsistent.
+    pub fn from_packed(packed: &[usize], layout: &ConvLayout) -> Option<Self> {
+        let table = |(a, len): (usize, usize)| packed.get(a..a + len);
+        let group_entries = match layout.groups() {
+            Some((members, ids)) => table(members)?
+                .iter()
+                .copied()
+                .zip(table(ids)?.iter().copied())
+                .collect(),
+            None => Vec::new(),
         };
-        let mut taps = Vec::with_capacity(index.taps.len());
-        for t in &index.taps {
-            let (source, target) = (read_indices(&t.source)?, read_indices(&t.target)?);
-            if t.tap >= NUM_TAPS
+        let mut taps = Vec::with_capacity(layout.taps.len());
+        for (tap, (source, target)) in layout.taps.iter().zip(layout.tap_spans()) {
+            taps.push((tap.tap, table(source)?.to_vec(), table(target)?.to_vec()));
+        }
+        Self::checked(layout.num_tokens, layout.num_groups, group_entries, taps)
+    }
+
+    /// The tables of `n` tokens and `g` groups; `None` when they are inconsistent (a member
+    /// outside `0..n`, a group outside `0..g`, a tap outside `0..27`, a source outside
+    /// `0..n + g`, a target outside `0..n`, sources and targets of different lengths).
+    pub fn checked(
+        n: usize,
+        g: usize,
+        group_entries: Vec<(usize, usize)>,
+        taps: Vec<(usize, Vec<usize>, Vec<usize>)>,
+    ) -> Option<Self> {
+        if group_entries.iter().any(|&(m, i)| m >= n || i >= g) {
+            return None;
+        }
+        let bad_tap = |(tap, source, target): &(usize, Vec<usize>, Vec<usize>)| {
+            *tap >= NUM_TAPS
                 || source.len() != target.len()
                 || source.iter().any(|&s| s >= n + g)
                 || target.iter().any(|&r| r >= n)
-            {
-                return None;
-            }
-            taps.push((t.tap, source, target));
+        };
+        if taps.iter().any(bad_tap) {
+            return None;
         }
         Some(Self {
             num_tokens: n,

@@ -12,6 +12,7 @@ pub mod bench;
 pub mod block;
 pub mod chunk_io;
 pub mod config;
+pub mod conv_layout;
 pub mod device;
 pub mod device_stats;
 pub mod drop_path;

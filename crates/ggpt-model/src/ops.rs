@@ -17,13 +17,6 @@ pub(crate) fn float_tensor<const D: usize>(
     Tensor::from_data(TensorData::new(values, shape), device)
 }
 
-/// Whether the device is one of the CPU backends (ndarray, flex). Decided from the device's
-/// debug name because Burn 0.22 exposes no backend query on `Device`.
-pub fn is_cpu_device(device: &Device) -> bool {
-    let name = format!("{device:?}");
-    name.contains("Flex") || name.contains("NdArray")
-}
-
 /// Upper bound on the floats of one row block of a wide intermediate (MLP hidden layer, head
 /// input): 64 MiB of f32. Bounds peak memory on large chunks (400k tokens).
 pub const ROW_BLOCK_BUDGET_FLOATS: usize = 16 * 1024 * 1024;

@@ -20,44 +20,28 @@ use crate::error::{ModelError, Result};
 use crate::ops::{float_tensor, index_tensor};
 use crate::plan::{BatchPlan, ConvTable, LevelPlan, PoolMap, Window};
 
-/// Number of kernel taps (3x3x3).
-pub const NUM_TAPS: usize = 27;
+pub use crate::conv_layout::{ConvLayout, ConvTap, NUM_TAPS};
 
-/// im2col tables of one level's submanifold convolution.
+/// The neighbour tables of one level's submanifold convolution: one packed index list and its
+/// layout ([`crate::conv_layout`]).
 #[derive(Debug, Clone)]
 pub struct ConvIndex {
-    /// Tokens `N` of the level.
-    pub num_tokens: usize,
-    /// `[N * 27]`: row of `X_ext` feeding tap `f` of token `t` at `t * 27 + f`.
-    pub im2col: Tensor<1, Int>,
-    /// Number of summed groups `G` (rows `N .. N + G` of `X_ext`).
-    pub num_groups: usize,
-    /// `[M]` member token of each group entry (`None` when `G = 0`).
-    pub group_members: Option<Tensor<1, Int>>,
-    /// `[M]` group of each group entry.
-    pub group_ids: Option<Tensor<1, Int>>,
-    /// The same tables split by tap, without the "no neighbour" slots (network.md §6,
-    /// docs/network.md "Sparse convolution on CPU"): only taps with at least one pair.
-    pub taps: Vec<TapIndex>,
-    /// Occupied slots / `27 N` (1 = every token has all 27 neighbours).
-    pub occupancy: f64,
+    /// The packed tables (im2col, group members and ids, per-tap sources and targets).
+    pub tables: Tensor<1, Int>,
+    /// Where each table sits in `tables`, the taps, `N`, `G` and the occupancy.
+    pub layout: ConvLayout,
 }
 
-/// The `(target, source)` pairs of one kernel tap, sources as rows of `X_ext`.
-#[derive(Debug, Clone)]
-pub struct TapIndex {
-    /// Tap `f` (`W_f = weight[:, f / 9, (f / 3) % 3, f % 3, :]`).
-    pub tap: usize,
-    /// Number of pairs `P_f`.
-    pub len: usize,
-    /// `[P_f]` row of `X_ext` (token, group sum) feeding each pair, ascending targets.
-    pub source: Tensor<1, Int>,
-    /// `[P_f]` output row of each pair (each target at most once per tap).
-    pub target: Tensor<1, Int>,
-    /// `target == 0..N` (every token has this neighbour): the scatter is a plain add.
-    pub full: bool,
-    /// `full` and `source == 0..N` (the centre tap without duplicates): no gather either.
-    pub identity: bool,
+impl ConvIndex {
+    /// Tokens `N` of the level.
+    pub fn num_tokens(&self) -> usize {
+        self.layout.num_tokens
+    }
+
+    /// Occupied slots / `27 N` (1 = every token has all 27 neighbours).
+    pub fn occupancy(&self) -> f64 {
+        self.layout.occupancy
+    }
 }
 
 /// Window groups of equal length of one order row.
@@ -358,55 +342,10 @@ pub fn conv_index_host(n: usize, table: &ConvTable) -> std::result::Result<ConvI
 fn conv_index(l: usize, n: usize, table: &ConvTable, device: &Device) -> Result<ConvIndex> {
     let (im2col, members, ids, num_groups) =
         conv_index_host(n, table).map_err(|e| ModelError::Plan(format!("level {l}: {e}")))?;
-    let (group_members, group_ids) = if num_groups > 0 {
-        (
-            Some(index_tensor(&members, device)),
-            Some(index_tensor(&ids, device)),
-        )
-    } else {
-        (None, None)
-    };
-    let zero_row = n + num_groups;
-    let mut taps = Vec::new();
-    let mut occupied = 0usize;
-    for f in 0..NUM_TAPS {
-        let mut source = Vec::new();
-        let mut target = Vec::new();
-        for t in 0..n {
-            let v = im2col[t * NUM_TAPS + f];
-            if v != zero_row {
-                source.push(v);
-                target.push(t);
-            }
-        }
-        if source.is_empty() {
-            continue;
-        }
-        occupied += source.len();
-        let full = source.len() == n;
-        let identity = full && source.iter().enumerate().all(|(t, &s)| s == t);
-        taps.push(TapIndex {
-            tap: f,
-            len: source.len(),
-            source: index_tensor(&source, device),
-            target: index_tensor(&target, device),
-            full,
-            identity,
-        });
-    }
-    let occupancy = if n == 0 {
-        0.0
-    } else {
-        occupied as f64 / (NUM_TAPS * n) as f64
-    };
+    let (packed, layout) = crate::conv_layout::pack(n, &im2col, &members, &ids, num_groups);
     Ok(ConvIndex {
-        num_tokens: n,
-        im2col: index_tensor(&im2col, device),
-        num_groups,
-        group_members,
-        group_ids,
-        taps,
-        occupancy,
+        tables: index_tensor(&packed, device),
+        layout,
     })
 }
 

@@ -35,7 +35,6 @@ use burn::tensor::{Device, Distribution, Tensor};
 use crate::drop_path::{self, MaskRngState};
 use crate::model::{Ggpt, GgptOutput};
 use crate::norm;
-use crate::ops::is_cpu_device;
 use crate::prepared::PreparedBatch;
 use crate::profile;
 use crate::readback::read_tensor_f32;
@@ -80,7 +79,7 @@ fn run<T, E>(
     let program = Program::of(model);
     let device = batch.coord.device().without_autodiff();
     let mut rec = Recorder::disabled();
-    let host_kernels = is_cpu_device(&device);
+    let host_kernels = crate::kernels::runs_on_host(&batch.coord);
     // 1. Forward without a graph: parameters detached (BatchNorm and drop path still in
     //    training mode), slot values kept without autodiff.
     let frozen = model.clone().no_grad();

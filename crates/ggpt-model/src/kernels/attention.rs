@@ -17,8 +17,9 @@
 use burn::backend::Backend;
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
-use burn::tensor::{Shape, Slice};
+use burn::tensor::Shape;
 
+use super::composed::narrow_rows;
 use super::host::HostFloat;
 use crate::host_attention::WindowShape;
 
@@ -56,22 +57,6 @@ fn windows_per_group(shape: WindowShape, budget: usize) -> usize {
     (budget / per_window.max(1)).max(1)
 }
 
-/// Rows `start..start + len` of `t` along axis 0.
-fn narrow0<B: Backend>(t: FloatTensor<B>, start: usize, len: usize) -> FloatTensor<B> {
-    let shape = t.shape();
-    let slices: Vec<Slice> = (0..shape.num_dims())
-        .map(|i| {
-            let (a, b) = if i == 0 {
-                (start, start + len)
-            } else {
-                (0, shape[i])
-            };
-            Slice::new(a as isize, Some(b as isize), 1)
-        })
-        .collect();
-    B::float_slice(t, &slices)
-}
-
 /// `q, k, v [W, H, L, d]` of `rows [W L, 3C]`.
 fn split_qkv<B: Backend>(
     rows: FloatTensor<B>,
@@ -88,7 +73,8 @@ fn split_qkv<B: Backend>(
         B::float_reshape(rows, [w, l, 3, h, d].into()),
         &[2, 0, 3, 1, 4],
     );
-    let part = |i: usize| B::float_reshape(narrow0::<B>(qkv.clone(), i, 1), [w, h, l, d].into());
+    let part =
+        |i: usize| B::float_reshape(narrow_rows::<B>(qkv.clone(), i, 1), [w, h, l, d].into());
     (part(0), part(1), part(2))
 }
 
@@ -129,7 +115,7 @@ fn by_sub_group<B: Backend, const N: usize>(
     while w0 < shape.windows {
         let windows = step.min(shape.windows - w0);
         let part = std::array::from_fn(|i| {
-            narrow0::<B>(inputs[i].clone(), w0 * shape.len, windows * shape.len)
+            narrow_rows::<B>(inputs[i].clone(), w0 * shape.len, windows * shape.len)
         });
         outs.push(f(part, WindowShape { windows, ..shape }));
         w0 += windows;

@@ -12,6 +12,7 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind, unary};
 use burn::backend::tensor::{FloatTensor, IntTensor};
 
 use super::GgptKernels;
+use crate::conv_layout::ConvLayout;
 use crate::host_attention::WindowShape;
 
 /// The backward of `gelu`; state: the input `x`.
@@ -101,7 +102,70 @@ impl<B: GgptKernels> Backward<B, 1> for WindowAttentionBackward {
     }
 }
 
+/// The backward of `subm_conv`; state: the input, the weight, the index tables and their
+/// layout.
+#[derive(Debug)]
+struct SubmConvBackward;
+
+impl<B: GgptKernels> Backward<B, 3> for SubmConvBackward {
+    type State = (FloatTensor<B>, FloatTensor<B>, IntTensor<B>, ConvLayout);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 3>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let [x_node, weight_node, bias_node] = ops.parents;
+        let grad = grads.consume::<B>(&ops.node);
+        let (x, weight, tables, layout) = ops.state;
+        let (dx, dw, db) = B::subm_conv_backward(x, weight, grad, tables, layout);
+        for (node, g) in [(x_node, dx), (weight_node, dw), (bias_node, db)] {
+            if let Some(node) = node {
+                grads.register::<B>(node.id, g);
+            }
+        }
+    }
+}
+
 impl<B: GgptKernels, C: CheckpointStrategy> GgptKernels for Autodiff<B, C> {
+    fn runs_on_host(probe: FloatTensor<Self>) -> bool {
+        B::runs_on_host(probe.into_primitive())
+    }
+
+    fn subm_conv(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        tables: IntTensor<Self>,
+        layout: ConvLayout,
+    ) -> FloatTensor<Self> {
+        match SubmConvBackward
+            .prepare::<C>([x.node(), weight.node(), bias.node()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let (x, weight) = (x.into_primitive(), weight.into_primitive());
+                let out = B::subm_conv(
+                    x.clone(),
+                    weight.clone(),
+                    bias.into_primitive(),
+                    tables.clone(),
+                    layout.clone(),
+                );
+                prep.finish((x, weight, tables, layout), out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(B::subm_conv(
+                x.into_primitive(),
+                weight.into_primitive(),
+                bias.into_primitive(),
+                tables,
+                layout,
+            )),
+        }
+    }
+
     fn window_attention(rows: FloatTensor<Self>, shape: WindowShape) -> FloatTensor<Self> {
         match WindowAttentionBackward
             .prepare::<C>([rows.node()])

@@ -5,7 +5,7 @@
 use burn::backend::Backend;
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::{FloatTensor, IntTensor};
-use burn::tensor::IndexingUpdateOp;
+use burn::tensor::{IndexingUpdateOp, Slice};
 
 /// `1 / sqrt(2 pi)`, the standard normal density at 0 (GELU', network.md §5.1).
 pub const INV_SQRT_2PI: f64 = 0.398_942_280_401_432_7;
@@ -94,4 +94,20 @@ pub fn layer_norm_backward<B: Backend>(
     );
     let d_beta = B::float_reshape(B::float_sum_dim(grad, 0), [c].into());
     (dx, d_gamma, d_beta)
+}
+
+/// Rows `start..start + len` of `t` along axis 0 (any rank).
+pub fn narrow_rows<B: Backend>(t: FloatTensor<B>, start: usize, len: usize) -> FloatTensor<B> {
+    let shape = t.shape();
+    let slices: Vec<Slice> = (0..shape.num_dims())
+        .map(|i| {
+            let (a, b) = if i == 0 {
+                (start, start + len)
+            } else {
+                (0, shape[i])
+            };
+            Slice::new(a as isize, Some(b as isize), 1)
+        })
+        .collect();
+    B::float_slice(t, &slices)
 }

@@ -28,6 +28,7 @@
 pub mod attention;
 mod autodiff;
 pub mod composed;
+pub mod conv;
 mod gelu;
 mod host;
 mod norm;
@@ -37,7 +38,9 @@ use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{Backend, Dispatch, backend_extension};
 use burn::tensor::{Int, Tensor};
 
+use crate::conv_layout::ConvLayout;
 use crate::host_attention::WindowShape;
+use crate::prepared::ConvIndex;
 
 pub use attention::SCORE_BUDGET_FLOATS;
 pub use gelu::{gelu_derivative, gelu_in_place, gelu_value};
@@ -102,6 +105,40 @@ pub trait GgptKernels: Backend {
         attention::window_attention_backward::<Self>(rows, grad, shape, SCORE_BUDGET_FLOATS)
     }
 
+    /// The submanifold sparse convolution, kernel 3 (network.md §6, [`conv`]): `x [N, C_in]`,
+    /// `weight [C_out, 3, 3, 3, C_in]` (spconv KRSC), `bias [C_out]`, the packed index `tables`
+    /// read by `layout` ([`crate::conv_layout`]) -> `[N, C_out]`. The default is the im2col
+    /// GEMM.
+    fn subm_conv(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        tables: IntTensor<Self>,
+        layout: ConvLayout,
+    ) -> FloatTensor<Self> {
+        conv::subm_conv_im2col::<Self>(x, weight, bias, &tables, &layout)
+    }
+
+    /// The backward of [`GgptKernels::subm_conv`]: `x`, `weight` and the output gradient
+    /// `grad [N, C_out]` -> `(d x [N, C_in], d weight [C_out, 3, 3, 3, C_in], d bias [C_out])`.
+    fn subm_conv_backward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        tables: IntTensor<Self>,
+        layout: ConvLayout,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        conv::subm_conv_backward_composed::<Self>(x, weight, grad, &tables, &layout)
+    }
+
+    /// Whether this backend's kernels run on the host (the CPU backends): `true` selects the
+    /// host part backwards of [`crate::recompute`] for a segment whose tensors live here.
+    /// `probe` is any tensor of the backend (only its type is looked at).
+    fn runs_on_host(probe: FloatTensor<Self>) -> bool {
+        let _ = probe;
+        false
+    }
+
     /// Rows of `x [N, C]` picked by `idx [M]` (values in `0..N`): `[M, C]`.
     fn gather_rows(x: FloatTensor<Self>, idx: IntTensor<Self>) -> FloatTensor<Self> {
         Self::float_select(x, 0, idx)
@@ -123,6 +160,10 @@ pub trait GgptKernels: Backend {
 macro_rules! host_kernels {
     ($backend:ty) => {
         impl GgptKernels for $backend {
+            fn runs_on_host(_probe: FloatTensor<Self>) -> bool {
+                true
+            }
+
             fn gelu_exact(x: FloatTensor<Self>) -> FloatTensor<Self> {
                 host::map::<Self>(x, gelu::gelu_slice).unwrap_or_else(composed::gelu::<Self>)
             }
@@ -143,6 +184,34 @@ macro_rules! host_kernels {
             ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
                 norm::layer_norm_backward_host::<Self>(x, gamma, grad, eps)
                     .unwrap_or_else(|(x, g, d)| composed::layer_norm_backward::<Self>(x, g, d, eps))
+            }
+
+            /// Tap-wise for sparse neighbourhoods ([`conv::tapwise`]), else im2col.
+            fn subm_conv(
+                x: FloatTensor<Self>,
+                weight: FloatTensor<Self>,
+                bias: FloatTensor<Self>,
+                tables: IntTensor<Self>,
+                layout: ConvLayout,
+            ) -> FloatTensor<Self> {
+                if conv::tapwise(&layout) {
+                    conv::subm_conv_tapwise::<Self>(x, weight, bias, &tables, &layout)
+                } else {
+                    conv::subm_conv_im2col::<Self>(x, weight, bias, &tables, &layout)
+                }
+            }
+
+            fn subm_conv_backward(
+                x: FloatTensor<Self>,
+                weight: FloatTensor<Self>,
+                grad: FloatTensor<Self>,
+                tables: IntTensor<Self>,
+                layout: ConvLayout,
+            ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+                conv::subm_conv_backward_host::<Self>(x, weight, grad, &tables, &layout)
+                    .unwrap_or_else(|(x, w, g)| {
+                        conv::subm_conv_backward_composed::<Self>(x, w, g, &tables, &layout)
+                    })
             }
 
             fn window_attention(rows: FloatTensor<Self>, shape: WindowShape) -> FloatTensor<Self> {
@@ -232,6 +301,25 @@ pub fn window_attention(rows: Tensor<2>, shape: WindowShape) -> Tensor<2> {
         rows.into_dispatch(),
         shape,
     ))
+}
+
+/// The submanifold conv of `x [N, C_in]` with `weight [C_out, 3, 3, 3, C_in]`, `bias [C_out]`
+/// over the neighbour tables of `index`, on any backend ([`GgptKernels::subm_conv`]; its
+/// backward is [`GgptKernels::subm_conv_backward`]): `[N, C_out]`.
+pub fn subm_conv(x: Tensor<2>, weight: Tensor<5>, bias: Tensor<1>, index: &ConvIndex) -> Tensor<2> {
+    Tensor::from_dispatch(<Dispatch as GgptKernels>::subm_conv(
+        x.into_dispatch(),
+        weight.into_dispatch(),
+        bias.into_dispatch(),
+        index.tables.clone().into_dispatch(),
+        index.layout.clone(),
+    ))
+}
+
+/// Whether `probe`'s backend runs the kernels on the host ([`GgptKernels::runs_on_host`]):
+/// routed by the tensor's backend type, with or without autodiff.
+pub fn runs_on_host<const D: usize>(probe: &Tensor<D>) -> bool {
+    <Dispatch as GgptKernels>::runs_on_host(probe.clone().into_dispatch())
 }
 
 /// `x[idx]` along rows: `x [N, C]`, `idx [M]` -> `[M, C]` ([`GgptKernels::gather_rows`]; its

@@ -6,10 +6,11 @@ use burn::backend::Dispatch;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use super::{
-    GgptKernels, SCORE_BUDGET_FLOATS, attention, composed, gather_rows, gelu, layer_norm,
-    window_attention,
+    GgptKernels, SCORE_BUDGET_FLOATS, attention, composed, conv, gather_rows, gelu, layer_norm,
+    subm_conv, window_attention,
 };
 use crate::host_attention::WindowShape;
+use crate::prepared::{ConvIndex, NUM_TAPS};
 
 /// erf in f64 (Abramowitz-Stegun 7.1.26 is too coarse; use a series / continued fraction).
 fn erf64(x: f64) -> f64 {
@@ -406,4 +407,160 @@ fn fused_attention_equals_the_composed_body() {
 #[test]
 fn fused_attention_equals_the_composed_body_on_wgpu() {
     fused_attention_equals_composed_on(&crate::device::device_from_name("wgpu").expect("wgpu"));
+}
+
+/// A hand-made neighbour table: `n` tokens, two summed groups, every slot pointing at a token,
+/// a group row or the zero row `N + G` ("no neighbour") by a fixed rule; tap 13 the identity.
+fn conv_case(device: &Device, n: usize) -> ConvIndex {
+    let groups = 2;
+    let members = [1usize, 4, 5, 7];
+    let ids = [0usize, 0, 1, 1];
+    let empty = n + groups;
+    let mut im2col = vec![0usize; n * NUM_TAPS];
+    for t in 0..n {
+        for f in 0..NUM_TAPS {
+            let h = (t * 31 + f * 17) % 11;
+            im2col[t * NUM_TAPS + f] = match (f, h) {
+                (13, _) => t,
+                (_, 0..=3) => empty,
+                (_, 4) => n + (t + f) % groups,
+                _ => (t + f * 5) % n,
+            };
+        }
+    }
+    let (packed, layout) = crate::conv_layout::pack(n, &im2col, &members, &ids, groups);
+    let packed: Vec<i64> = packed.into_iter().map(|v| v as i64).collect();
+    let len = packed.len();
+    ConvIndex {
+        tables: Tensor::<1, Int>::from_data(TensorData::new(packed, [len]), device),
+        layout,
+    }
+}
+
+/// `(out, d x, d weight, d bias)` of `f(x, weight, bias)` under autodiff with the surrogate
+/// loss `Σ w ⊙ out`.
+type ConvRun = (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>);
+
+fn conv_grads(
+    device: &Device,
+    n: usize,
+    (c_in, c_out): (usize, usize),
+    f: &dyn Fn(Tensor<2>, Tensor<5>, Tensor<1>) -> Tensor<2>,
+) -> ConvRun {
+    let x = Tensor::<2>::from_data(TensorData::new(spread(n * c_in, 21), [n, c_in]), device)
+        .require_grad();
+    let w = Tensor::<5>::from_data(
+        TensorData::new(spread(c_out * NUM_TAPS * c_in, 22), [c_out, 3, 3, 3, c_in]),
+        device,
+    )
+    .require_grad();
+    let b =
+        Tensor::<1>::from_data(TensorData::new(spread(c_out, 23), [c_out]), device).require_grad();
+    let weight = Tensor::<2>::from_data(TensorData::new(spread(n * c_out, 24), [n, c_out]), device);
+    let y = f(x.clone(), w.clone(), b.clone());
+    let grads = (y.clone() * weight).sum().backward();
+    (
+        values(y),
+        values(x.grad(&grads).expect("d x")),
+        values(w.grad(&grads).expect("d weight")),
+        values(b.grad(&grads).expect("d bias")),
+    )
+}
+
+/// The composed im2col conv as a tensor expression.
+fn composed_conv(x: Tensor<2>, w: Tensor<5>, b: Tensor<1>, index: &ConvIndex) -> Tensor<2> {
+    Tensor::from_dispatch(conv::subm_conv_im2col::<Dispatch>(
+        x.into_dispatch(),
+        w.into_dispatch(),
+        b.into_dispatch(),
+        &index.tables.clone().into_dispatch(),
+        &index.layout,
+    ))
+}
+
+fn assert_conv_close(got: &ConvRun, want: &ConvRun, what: &str) {
+    assert_close(&got.0, &want.0, 1e-5, &format!("{what}: out"));
+    assert_close(&got.1, &want.1, 1e-5, &format!("{what}: d x"));
+    assert_close(&got.2, &want.2, 1e-5, &format!("{what}: d weight"));
+    assert_close(&got.3, &want.3, 1e-5, &format!("{what}: d bias"));
+}
+
+/// The conv op (the tap-wise forward and the host backward on the CPU backends) equals autodiff
+/// of the composed im2col body: output, and gradients of the input, weight and bias, with
+/// summed groups and empty slots.
+#[test]
+fn subm_conv_backward_equals_autodiff_of_the_composed_body() {
+    for device in devices() {
+        let (n, channels) = (40, (5, 6));
+        let index = conv_case(&device, n);
+        assert!(
+            conv::tapwise(&index.layout),
+            "the CPU backends take the tap-wise form"
+        );
+        assert!(index.layout.groups().is_some() && index.layout.taps.len() == NUM_TAPS);
+        let op = conv_grads(&device, n, channels, &|x, w, b| subm_conv(x, w, b, &index));
+        let want = conv_grads(&device, n, channels, &|x, w, b| {
+            composed_conv(x, w, b, &index)
+        });
+        assert_conv_close(&op, &want, "subm conv");
+    }
+}
+
+/// The composed backward (what CubeCL runs) equals autodiff of the composed forward.
+#[test]
+fn composed_conv_backward_equals_autodiff_of_the_composed_forward() {
+    for device in devices() {
+        let (n, (c_in, c_out)) = (40, (5, 6));
+        let index = conv_case(&device, n);
+        let want = conv_grads(&device, n, (c_in, c_out), &|x, w, b| {
+            composed_conv(x, w, b, &index)
+        });
+        let inner = device.inner();
+        let index = conv_case(&inner, n);
+        let x = Tensor::<2>::from_data(TensorData::new(spread(n * c_in, 21), [n, c_in]), &inner);
+        let w = Tensor::<5>::from_data(
+            TensorData::new(spread(c_out * NUM_TAPS * c_in, 22), [c_out, 3, 3, 3, c_in]),
+            &inner,
+        );
+        let g = Tensor::<2>::from_data(TensorData::new(spread(n * c_out, 24), [n, c_out]), &inner);
+        let (dx, dw, db) = conv::subm_conv_backward_composed::<Dispatch>(
+            x.into_dispatch(),
+            w.into_dispatch(),
+            g.into_dispatch(),
+            &index.tables.clone().into_dispatch(),
+            &index.layout,
+        );
+        let got = (
+            want.0.clone(),
+            values(Tensor::<2>::from_dispatch(dx)),
+            values(Tensor::<5>::from_dispatch(dw)),
+            values(Tensor::<1>::from_dispatch(db)),
+        );
+        assert_conv_close(&got, &want, "composed conv backward");
+    }
+}
+
+/// The host-kernel query is routed by the backend type: true on the CPU backends, with and
+/// without autodiff.
+#[test]
+fn the_cpu_backends_run_on_the_host() {
+    for device in devices() {
+        for d in [device.clone(), device.inner()] {
+            let probe = Tensor::<2>::zeros([1, 1], &d);
+            assert!(super::runs_on_host(&probe), "{d:?}");
+        }
+    }
+}
+
+/// ... and false on CubeCL.
+#[cfg(feature = "wgpu")]
+#[test]
+fn wgpu_does_not_run_on_the_host() {
+    let device = crate::device::device_from_name("wgpu").expect("wgpu");
+    for d in [device.clone(), device.autodiff()] {
+        assert!(
+            !super::runs_on_host(&Tensor::<2>::zeros([1, 1], &d)),
+            "{d:?}"
+        );
+    }
 }
