@@ -16,7 +16,6 @@ use crate::config::GgptConfig;
 use crate::drop_path::DropPath;
 use crate::host_conv_grad::{HostConvTables, subm_conv_backward};
 use crate::host_dense::{HostLinear, HostNorm, LinearGrads, NormRows, scale_rows};
-use crate::host_mlp;
 use crate::kernels::gelu;
 use crate::norm::{layer_norm, layer_norm_forward};
 use crate::ops::map_row_blocks;
@@ -71,7 +70,7 @@ pub struct Block {
     /// Order row used by this block (`i mod 4`).
     pub order_row: usize,
     /// Epsilon of the block's LayerNorms (`GgptConfig::ln_eps`; Burn's `LayerNorm` does not
-    /// expose its own), for the host backward ([`Self::mlp_part_backward`]).
+    /// expose its own), for the host backward ([`Self::attn_part_backward`]).
     pub ln_eps: f64,
 }
 
@@ -361,47 +360,10 @@ impl Block {
         rec.record(|| format!("{name}.out"), &x3);
         x3
     }
-
-    /// Backward of [`Self::mlp_part`] on the host (CPU training, `crate::recompute`,
-    /// [`crate::host_mlp`]): `x2 [N, C]` (the segment input, no graph) and `g_x3 [N, C]` (the
-    /// gradient of its output) -> [`PartGrads`] with the gradient of `x2`. No autodiff graph
-    /// is built. The drop-path mask is drawn once, as by [`Self::mlp_part`] (the caller
-    /// restores the mask RNG before). `None` when a readback fails: the caller then
-    /// differentiates [`Self::mlp_part`] itself.
-    pub fn mlp_part_backward(&self, x2: Tensor<2>, g_x3: Tensor<2>) -> Option<PartGrads> {
-        let [n, c] = x2.dims();
-        let device = x2.device();
-        let row_scale = self.drop_path_scale(n, &device)?;
-        let norm = HostNorm::read(&self.norm2, self.ln_eps)?;
-        let (fc1, fc2) = (
-            HostLinear::read(&self.mlp.fc1)?,
-            HostLinear::read(&self.mlp.fc2)?,
-        );
-        let d = profile::scope(
-            || "step.host_mlp.backward".to_string(),
-            || {
-                host_mlp::mlp_backward(
-                    &read_values(x2)?,
-                    &read_values(g_x3)?,
-                    row_scale.as_deref(),
-                    &norm,
-                    &fc1,
-                    &fc2,
-                )
-            },
-        )?;
-        let mut grads = PartGrads::default();
-        grads.norm(&self.norm2, d.ln_gamma, d.ln_beta, &device);
-        grads.linear(&self.mlp.fc1, &d.fc1, &device);
-        grads.linear(&self.mlp.fc2, &d.fc2, &device);
-        grads.inputs = vec![Tensor::from_data(TensorData::new(d.input, [n, c]), &device)];
-        Some(grads)
-    }
 }
 
 /// Gradients of a block part's host backward ([`Block::cpe_part_backward`],
-/// [`Block::attn_part_backward`], [`Block::mlp_part_backward`]), on the device of its inputs,
-/// no graph.
+/// [`Block::attn_part_backward`]), on the device of its inputs, no graph.
 #[derive(Debug, Clone, Default)]
 pub struct PartGrads {
     /// Of the part's inputs, in the order of its segment inputs (`[N, C]` each).

@@ -1,6 +1,6 @@
 //! Dense row-wise kernels on the host for the CPU backward of a block's branches
-//! ([`crate::host_mlp`], [`crate::block::Block::attn_part_backward`],
-//! [`crate::block::Block::cpe_part_backward`]): LayerNorm forward/backward by rows, column
+//! ([`crate::block::Block::attn_part_backward`], [`crate::block::Block::cpe_part_backward`],
+//! the LayerNorm backward of the kernel layer): LayerNorm forward/backward by rows, column
 //! sums and multi-threaded GEMMs, every pass split over the rayon pool. All buffers are
 //! row-major `[rows, width]` f32.
 //!
@@ -92,21 +92,6 @@ fn affine_rows(xhat: &[f32], gamma: &[f32], beta: Option<&[f32]>, u: &mut [f32])
                 }
             }
         });
-}
-
-/// Row-wise LayerNorm of `x [rows, C]` (biased variance) into caller buffers: `xhat`,
-/// `rstd [rows]` and `u = xhat γ + β`.
-pub(crate) fn layer_norm_rows(
-    x: &[f32],
-    gamma: &[f32],
-    beta: Option<&[f32]>,
-    eps: f32,
-    xhat: &mut [f32],
-    rstd: &mut [f32],
-    u: &mut [f32],
-) {
-    normalize_rows(x, gamma.len(), eps, xhat, rstd);
-    affine_rows(xhat, gamma, beta, u);
 }
 
 /// LayerNorm backward of a row block: `g_u [rows, C]` (gradient of the LN output), `xhat`,

@@ -23,7 +23,6 @@ pub mod host_attention;
 pub mod host_attention_grad;
 pub mod host_conv_grad;
 mod host_dense;
-pub mod host_mlp;
 pub mod infer;
 pub mod kernels;
 pub mod linear_bn;

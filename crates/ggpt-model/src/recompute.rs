@@ -20,11 +20,12 @@
 //!   it is left where the forward left it, as after a plain step. An unseeded thread (device
 //!   RNG) is seeded for the step from one draw of the device RNG.
 //!
-//! On CPU devices the attention cores, the sparse convs and the whole MLP branches are
-//! differentiated on the host ([`crate::block::Block::attn_part_backward`],
-//! [`crate::block::Block::cpe_part_backward`], [`crate::block::Block::mlp_part_backward`]);
+//! On CPU devices the attention and xCPE parts are differentiated on the host
+//! ([`crate::block::Block::attn_part_backward`], [`crate::block::Block::cpe_part_backward`]);
 //! the forward also keeps the attention before its projection and the sparse conv's output
-//! (`[N, C]` per attention and CPE part), so that the backward does not recompute them.
+//! (`[N, C]` per attention and CPE part), so that the backward does not recompute them. Every
+//! other segment (the MLP parts included) is re-run under autodiff, where the kernel layer's
+//! ops (GELU, LayerNorm, row gathers, attention core, sparse conv) bring their own backwards.
 //!
 //! Cost: one extra forward per step (no graph), against a graph bounded by the largest segment.
 
@@ -152,10 +153,11 @@ fn run<T, E>(
             .collect();
         drop_path::restore_mask_rng(&rng_before[k]);
         if let (Op::Block { stage, block, part }, [Some(g)]) = (seg.op, out_grads.as_slice()) {
-            // CPU devices: the block parts differentiated on the host (no graph, no per-tap
-            // weight slices, multi-threaded element-wise passes). Other devices re-run the
-            // segment under autodiff (below); the attention core's `Backward` bounds its
-            // score tensors itself (crate::kernels::attention).
+            // CPU devices: the xCPE and attention parts differentiated on the host from what the
+            // graph-free forward kept (the conv output, the attention core): no re-run of
+            // those. The MLP parts, and every part on other devices, re-run under autodiff
+            // (below), where the kernel layer's ops bring their own backwards (host kernels
+            // on the CPU; the attention core's score-bounded backward on CubeCL).
             let (blocks, level) = model.stage_blocks(batch, stage);
             let b = &blocks[block];
             let input = |j: usize| slot(&values, seg.inputs[j], &device);
@@ -166,8 +168,7 @@ fn run<T, E>(
                 (BlockPart::Attn, true) => {
                     b.attn_part_backward(input(0), g.clone(), level, kept[k].take())
                 }
-                (BlockPart::Mlp, true) => b.mlp_part_backward(input(0), g.clone()),
-                (_, false) => None,
+                (BlockPart::Mlp, _) | (_, false) => None,
             };
             if let Some(d) = d {
                 for (&i, g) in seg.inputs.iter().zip(d.inputs) {
@@ -435,9 +436,9 @@ mod tests {
         );
     }
 
-    /// The host backward of every block part (CPE, attention, MLP) equals autodiff of that
-    /// part, with the intermediate kept by the forward and recomputing it, with and without an
-    /// active drop path.
+    /// The host backward of the CPE and attention parts equals autodiff of that part, with the
+    /// intermediate kept by the forward and recomputing it, with and without an active drop
+    /// path.
     #[test]
     fn host_part_backwards_equal_autodiff_of_the_part() {
         let _rng = rng_lock();
@@ -470,7 +471,7 @@ mod tests {
         for block in [0, active] {
             let b = &blocks[block];
             let fb = &frozen_blocks[block];
-            for part in [BlockPart::Cpe, BlockPart::Attn, BlockPart::Mlp] {
+            for part in [BlockPart::Cpe, BlockPart::Attn] {
                 let label = format!("block {block} {part:?}");
                 // autodiff of the part
                 drop_path::seed_drop_path(Some(9));
@@ -513,7 +514,7 @@ mod tests {
                         fb.attn_part_with_core(x.clone().autodiff(), level, &mut rec, "enc1.block")
                             .1,
                     ),
-                    BlockPart::Mlp => None,
+                    BlockPart::Mlp => unreachable!("the MLP part has no host backward"),
                 };
                 for kept in [kept.map(Tensor::without_autodiff), None] {
                     drop_path::seed_drop_path(Some(9));
@@ -524,7 +525,7 @@ mod tests {
                         BlockPart::Attn => {
                             b.attn_part_backward(x.clone(), g.clone(), level, kept.clone())
                         }
-                        BlockPart::Mlp => b.mlp_part_backward(x.clone(), g.clone()),
+                        BlockPart::Mlp => unreachable!("the MLP part has no host backward"),
                     }
                     .expect("host backward");
                     assert_eq!(d.inputs.len(), want_inputs.len(), "{label}");
