@@ -18,8 +18,8 @@ use std::path::PathBuf;
 use ggpt_core::Dims;
 use ggpt_core::figure::Canvas;
 use ggpt_core::metrics::PointEvaluation;
-use ggpt_scene::export::{Rgb8Image, RunOutput};
 
+use crate::run_output::{Rgb8Image, RunOutput};
 use crate::{InferError, Result};
 
 /// Default upper end of the colour scale (cm).
@@ -104,7 +104,7 @@ pub fn write_error_maps(
     max_cm: f64,
 ) -> Result<Vec<PathBuf>> {
     let maps = render_error_maps(dims, images, inputs, max_cm)?;
-    Ok(out.write_error_maps(&maps)?)
+    out.write_error_maps(&maps)
 }
 
 /// Tick step of the colour bar for a scale of `max_cm`: 1, 2 or 5 × 10^k, about 5 ticks.

@@ -6,6 +6,8 @@
 //!   [`ggpt_model::model_dir`];
 //! * [`pipeline`]: [`pipeline::run_scene`] — SfM when needed, refinement, export, evaluation;
 //! * before / after metrics: [`ggpt_eval::refinement`]; [`error_maps`]: per-view PNG error maps;
+//! * [`run_output`]: [`run_output::RunOutput`], the one writer of the run folder, and its file
+//!   names;
 //! * [`demo`]: the synthetic end-to-end demo; [`rss`]: per-stage wall time and peak memory.
 //!
 //! Frames and units: refined points in the SfM frame (scene units); evaluation in the GT frame
@@ -19,6 +21,7 @@ pub mod inputs;
 pub mod pipeline;
 pub mod refiner;
 pub mod rss;
+pub mod run_output;
 
 pub use engine::Refiner;
 pub use error::{InferError, Result};

@@ -22,6 +22,7 @@ use ggpt_infer::demo::{DemoOptions, run_demo};
 use ggpt_infer::inputs::{original_images, scene_from_files};
 use ggpt_infer::pipeline::{RunOptions, RunReport, save_run};
 use ggpt_infer::rss::{StageLog, StageTiming};
+use ggpt_infer::run_output;
 use ggpt_model::chunk_io::{chunk_outputs_to_bytes, read_chunk_inputs};
 use ggpt_model::device::device_from_name;
 use ggpt_model::infer::prepare_chunks;
@@ -364,17 +365,20 @@ fn print_report(r: &RunReport) {
     print_stages(&r.stages);
     println!("outputs in {}:", r.out_dir.display());
     for f in r.export.files.iter().map(String::as_str).chain([
-        "refined.safetensors",
-        "config.json",
-        "meta.json",
+        run_output::REFINED_SAFETENSORS,
+        run_output::CONFIG_JSON,
+        run_output::META_JSON,
     ]) {
         println!("  {}", r.out_dir.join(f).display());
     }
     if r.evaluation.is_some() {
-        println!("  {}", r.out_dir.join("evaluation.json").display());
+        println!(
+            "  {}",
+            r.out_dir.join(run_output::EVALUATION_JSON).display()
+        );
         println!(
             "  {}/view_*.png (image | feed-forward error | SfM points' error | refined error)",
-            r.out_dir.join("error_maps").display()
+            r.out_dir.join(run_output::ERROR_MAP_DIR).display()
         );
     }
 }

@@ -9,10 +9,10 @@ use std::time::Instant;
 
 use ggpt_core::chunking::ChunkingSettings;
 use ggpt_core::{Progress, Scene, SfmResult};
+use ggpt_scene::ChunkRefiner;
 use ggpt_scene::chunk_settings::ResolvedChunking;
 use ggpt_scene::driver::{RefineOptions, RefinedScene, refine_scene_with_progress};
-use ggpt_scene::export::{ExportOptions, ExportSummary, RunOutput};
-use ggpt_scene::{ChunkRefiner, SceneError};
+use ggpt_scene::export::{ExportOptions, ExportSummary};
 use ggpt_sfm::ba::CameraModel;
 use ggpt_sfm::masks::Preset;
 use ggpt_sfm::pipeline::{SfmConfig, SfmSummary, run_sfm_with_progress};
@@ -20,12 +20,9 @@ use ggpt_sfm::pipeline::{SfmConfig, SfmSummary, run_sfm_with_progress};
 use crate::error_maps::{DEFAULT_ERROR_MAP_MAX_CM, ErrorMapInputs, write_error_maps};
 use crate::refiner::{BurnRefiner, RefinerStats};
 use crate::rss::{StageLog, StageTiming, mib, peak_rss_bytes, reset_peak_rss};
+use crate::run_output::RunOutput;
 use crate::{InferError, Result};
 use ggpt_eval::refinement::{SceneEvaluation, evaluate_refinement};
-
-/// File names of the output folder (owned by its writer, [`RunOutput`]): `refined.safetensors`,
-/// `evaluation.json` (written when the scene has ground truth), the error-map folder.
-pub use ggpt_scene::export::{ERROR_MAP_DIR, EVALUATION_JSON, REFINED_SAFETENSORS};
 
 /// A [`ChunkRefiner`] that reports what it did (the network stage of the timing table).
 pub trait MeasuredRefiner: ChunkRefiner {
@@ -146,17 +143,6 @@ pub fn ensure_sfm(
     Ok(Some(out.summary))
 }
 
-/// A failure to create the output folder, as [`InferError::Write`] naming it.
-fn output_dir_error(out: &Path, e: SceneError) -> InferError {
-    match e {
-        SceneError::Core(ggpt_core::CoreError::Io { source, .. }) => InferError::Write {
-            path: out.to_path_buf(),
-            message: source.to_string(),
-        },
-        other => other.into(),
-    }
-}
-
 /// The refinement of one scene, before anything is written: what [`refine_run`] computed.
 #[derive(Debug, Clone)]
 pub struct RefinedRun {
@@ -260,7 +246,7 @@ pub fn run_scene(
     log: &mut StageLog,
     progress: &mut dyn FnMut(Progress),
 ) -> Result<RunReport> {
-    let output = RunOutput::create(out).map_err(|e| output_dir_error(out, e))?;
+    let output = RunOutput::create(out)?;
     let run = refine_run(scene, refiner, opts, log, progress)?;
     save_into(output, run, scene, opts, config, meta, log)
 }
@@ -278,7 +264,7 @@ pub fn save_run(
     meta: serde_json::Value,
     log: &mut StageLog,
 ) -> Result<RunReport> {
-    let output = RunOutput::create(out).map_err(|e| output_dir_error(out, e))?;
+    let output = RunOutput::create(out)?;
     save_into(output, run, scene, opts, config, meta, log)
 }
 

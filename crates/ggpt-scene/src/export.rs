@@ -1,5 +1,5 @@
-//! Export of a refined scene (`pipeline.md` §9): PLY point clouds, npy / npz arrays, a COLMAP
-//! sparse model and the run metadata files.
+//! Export of a refined scene (`pipeline.md` §9): PLY point clouds, npy / npz arrays and a COLMAP
+//! sparse model.
 //!
 //! PLY filter (official demo behaviour): threshold `τ` = the `q` quantile (default 0.2, linear
 //! interpolation like `torch.quantile`) of the confidence over **all** `N h w` pixels (uncovered
@@ -7,21 +7,19 @@
 //! `s = floor(n / 10^6) * 5`), keep `conf >= τ`, then a seeded uniform subset of at most
 //! `max_points` (kept in pixel order). Colours: `floor(255 · clamp(v, 0, 1))`.
 //!
-//! Files: `ggpt_points.ply` (refined, SfM frame), `ff_points.ply` (unaligned feed-forward points
-//! of the same pixels, feed-forward frame), `sfm_points.ply` (DLT points, SfM frame, ≤ 10^6,
-//! no confidence filter); `points.npy`, `confidence.npy`, `covered.npy`, `depth.npy` (`z` of the
-//! refined points in the SfM cameras, scene units), `scene.npz`; `sparse/0/` (COLMAP);
-//! `config.json`, `meta.json`; for a full run also `refined.safetensors`, `evaluation.json` and
-//! `error_maps/view_*.png`. [`RunOutput`] is the one writer of the output folder: every file of a
-//! run goes through it, and it writes `meta.json` once, at the end.
+//! Files ([`export_scene`]): `ggpt_points.ply` (refined, SfM frame), `ff_points.ply` (unaligned
+//! feed-forward points of the same pixels, feed-forward frame), `sfm_points.ply` (DLT points, SfM
+//! frame, ≤ 10^6, no confidence filter); `points.npy`, `confidence.npy`, `covered.npy`,
+//! `depth.npy` (`z` of the refined points in the SfM cameras, scene units), `scene.npz`;
+//! `sparse/0/` (COLMAP). The rest of a run's folder (`config.json`, `meta.json`,
+//! `refined.safetensors`, `evaluation.json`, `error_maps/`) is written by `ggpt-infer`'s
+//! `run_output::RunOutput`, which calls [`export_scene`] for these files.
 
 use std::path::{Path, PathBuf};
 
-use ggpt_core::io::atomic::write_json_atomic;
 use ggpt_core::io::colmap::{ColmapModel, ColmapPoint3D, write_colmap};
 use ggpt_core::io::npy::{NpyArray, NpyData, write_npy, write_npz};
 use ggpt_core::io::ply::{PlyCloud, write_ply};
-use ggpt_core::io::st::StWriter;
 use ggpt_core::{Cameras, Scene, SfmResult};
 use rand::SeedableRng;
 
@@ -347,353 +345,186 @@ fn image_names(opts: &ExportOptions, n: usize) -> Result<Vec<String>, SceneError
     Ok(names)
 }
 
-/// Writes every export file of §9 into `dir` (created if needed) and `config` / `meta` as
-/// `config.json` / `meta.json` (with this export's summary added under `"export"` in `meta`):
-/// a [`RunOutput`] for callers that write nothing else. `scene` provides the images and the
-/// unaligned feed-forward points, `sfm` the cameras and DLT points, `refined` the output of
-/// [`crate::driver::refine_scene`].
+/// Writes the export files of §9 (PLY, npy / npz, COLMAP and the splat-ready part, as `opts`
+/// selects) into `dir` (created if needed) and returns what was written. `scene` provides the
+/// images and the unaligned feed-forward points, `sfm` the cameras and DLT points, `refined` the
+/// output of [`crate::driver::refine_scene`].
 pub fn export_scene(
     dir: &Path,
     scene: &Scene,
     sfm: &SfmResult,
     refined: &RefinedScene,
     opts: &ExportOptions,
-    config: &serde_json::Value,
-    meta: &serde_json::Value,
 ) -> Result<ExportSummary, SceneError> {
-    let mut out = RunOutput::create(dir)?;
-    let summary = out.export(scene, sfm, refined, opts)?;
-    out.write_config(config)?;
-    let mut meta = meta.clone();
-    if let serde_json::Value::Object(m) = &mut meta {
-        m.insert(
-            "export".into(),
-            serde_json::to_value(&summary)
-                .map_err(|e| SceneError::Invalid(format!("meta.json: {e}")))?,
+    std::fs::create_dir_all(dir).map_err(|e| ggpt_core::CoreError::io(dir, e))?;
+    let d = refined.dims;
+    let px = d.pixels();
+    check_len("export: refined points", refined.points.len(), 3 * px)?;
+    check_len("export: refined confidence", refined.conf.len(), px)?;
+    check_len("export: images", scene.images.len(), 3 * px)?;
+    check_len("export: sfm points", sfm.points.len(), 3 * px)?;
+    check_len("export: sfm mask", sfm.mask.len(), px)?;
+    let ff = scene.ff.as_ref().ok_or_else(|| {
+        SceneError::Invalid("export: the scene has no feed-forward prediction".into())
+    })?;
+    check_len("export: ff points", ff.points.len(), 3 * px)?;
+    let mut files = Vec::new();
+    if let Some(v) = opts.voxel_size
+        && !(v.is_finite() && v > 0.0)
+    {
+        return Err(SceneError::Invalid(format!(
+            "export: voxel size {v} must be positive"
+        )));
+    }
+    let (tau, keep) = select_points_voxel(
+        &refined.conf,
+        opts.voxel_size.map(|v| (refined.points.as_slice(), v)),
+        opts.conf_quantile,
+        opts.max_points,
+        opts.seed,
+    )?;
+    let mut sfm_count = 0;
+    if opts.ply {
+        let cols = colors(&scene.images, &keep);
+        let conf_of = |c: &[f32]| {
+            opts.ply_confidence.then(|| {
+                keep.iter()
+                    .map(|&p| c.get(p as usize).copied().unwrap_or(0.0))
+                    .collect()
+            })
+        };
+        let refined_cloud = PlyCloud {
+            points: keep
+                .iter()
+                .map(|&p| p3(&refined.points, p as usize))
+                .collect(),
+            colors: cols.clone(),
+            confidence: conf_of(&refined.conf),
+        };
+        write_ply(&dir.join("ggpt_points.ply"), &refined_cloud)?;
+        let ff_cloud = PlyCloud {
+            points: keep.iter().map(|&p| p3(&ff.points, p as usize)).collect(),
+            colors: cols,
+            confidence: conf_of(&ff.conf),
+        };
+        write_ply(&dir.join("ff_points.ply"), &ff_cloud)?;
+        let dlt: Vec<u32> = sfm
+            .mask
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| **m)
+            .map(|(p, _)| p as u32)
+            .collect();
+        let dlt = subsample(&dlt, opts.max_points, opts.seed);
+        sfm_count = dlt.len();
+        let sfm_cloud = PlyCloud {
+            points: dlt.iter().map(|&p| p3(&sfm.points, p as usize)).collect(),
+            colors: colors(&scene.images, &dlt),
+            confidence: None,
+        };
+        write_ply(&dir.join("sfm_points.ply"), &sfm_cloud)?;
+        files.extend(["ggpt_points.ply", "ff_points.ply", "sfm_points.ply"].map(String::from));
+    }
+    if opts.arrays {
+        let (n, h, w) = (d.n, d.h, d.w);
+        let points = arr(vec![n, h, w, 3], NpyData::F32(refined.points.clone()))?;
+        let conf = arr(vec![n, h, w], NpyData::F32(refined.conf.clone()))?;
+        let covered = arr(vec![n, h, w], NpyData::Bool(refined.covered.clone()))?;
+        let depth = arr(
+            vec![n, h, w],
+            NpyData::F32(depth_map(&refined.points, &sfm.cameras, d.hw())?),
+        )?;
+        let cams = arr(
+            vec![n, 3, 4],
+            NpyData::F64(
+                sfm.cameras
+                    .cam_from_world
+                    .iter()
+                    .flat_map(|m| (0..12).map(move |i| m[(i / 4, i % 4)]))
+                    .collect(),
+            ),
+        )?;
+        let ks = arr(
+            vec![n, 3, 3],
+            NpyData::F64(
+                sfm.cameras
+                    .intrinsics
+                    .iter()
+                    .flat_map(|m| (0..9).map(move |i| m[(i / 3, i % 3)]))
+                    .collect(),
+            ),
+        )?;
+        let imgs = arr(
+            vec![n, h, w, 3],
+            NpyData::U8(scene.images.iter().map(|&v| color_u8(v)).collect()),
+        )?;
+        write_npy(&dir.join("points.npy"), &points)?;
+        write_npy(&dir.join("confidence.npy"), &conf)?;
+        write_npy(&dir.join("covered.npy"), &covered)?;
+        write_npy(&dir.join("depth.npy"), &depth)?;
+        let members = [
+            ("points", &points),
+            ("confidence", &conf),
+            ("covered", &covered),
+            ("depth", &depth),
+            ("cam_from_world", &cams),
+            ("K", &ks),
+            ("images_ff", &imgs),
+        ];
+        write_npz(&dir.join("scene.npz"), &members, false)?;
+        files.extend(
+            [
+                "points.npy",
+                "confidence.npy",
+                "covered.npy",
+                "depth.npy",
+                "scene.npz",
+            ]
+            .map(String::from),
         );
     }
-    out.finish(&meta)?;
-    Ok(summary)
-}
-
-/// Refined arrays in safetensors (`refined.safetensors`, [`RunOutput::write_refined`]).
-pub const REFINED_SAFETENSORS: &str = "refined.safetensors";
-/// Evaluation report (`evaluation.json`, [`RunOutput::write_evaluation`]).
-pub const EVALUATION_JSON: &str = "evaluation.json";
-/// Folder of the per-view error maps (`error_maps/view_{i:03}.png`,
-/// [`RunOutput::write_error_maps`]).
-pub const ERROR_MAP_DIR: &str = "error_maps";
-/// Run configuration (`config.json`, [`RunOutput::write_config`]).
-pub const CONFIG_JSON: &str = "config.json";
-/// Run metadata (`meta.json`, written once by [`RunOutput::finish`]).
-pub const META_JSON: &str = "meta.json";
-
-/// An RGB8 image for [`RunOutput::write_error_maps`]: `[height, width, 3]` row-major bytes.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Rgb8Image {
-    /// Width in pixels.
-    pub width: usize,
-    /// Height in pixels.
-    pub height: usize,
-    /// `3 * width * height` bytes, row-major RGB.
-    pub rgb: Vec<u8>,
-}
-
-/// Serialises `refined.safetensors`: `points` f32 `[N,h,w,3]` (SfM frame), `confidence` f32
-/// `[N,h,w]`, `covered` bool `[N,h,w]`, `aligned_ff_points` f32 `[N,h,w,3]` (the pre-aligned
-/// feed-forward points, SfM frame), `cam_from_world` f64 `[N,3,4]`, `K` f64 `[N,3,3]` (SfM
-/// cameras, ff pixels, pixel-centre convention); metadata `frame = sfm`. `path` names errors.
-pub fn refined_safetensors_bytes(
-    path: &Path,
-    refined: &RefinedScene,
-    sfm: &SfmResult,
-) -> Result<Vec<u8>, SceneError> {
-    let d = refined.dims;
-    let mut w = StWriter::new();
-    w.f32("points", &[d.n, d.h, d.w, 3], &refined.points);
-    w.f32("confidence", &[d.n, d.h, d.w], &refined.conf);
-    w.bool("covered", &[d.n, d.h, d.w], &refined.covered);
-    w.f32(
-        "aligned_ff_points",
-        &[d.n, d.h, d.w, 3],
-        &refined.aligned_ff,
-    );
-    w.extrinsics("cam_from_world", &sfm.cameras.cam_from_world);
-    w.intrinsics("K", &sfm.cameras.intrinsics);
-    let meta = [("frame", "sfm"), ("format", "ggpt-rs refined point map")]
-        .map(|(k, v)| (k.to_string(), v.to_string()));
-    Ok(w.finish(path, Some(meta.into_iter().collect()))?)
-}
-
-/// The one writer of a run's output folder (`pipeline.md` §9): it owns the directory and its
-/// file names, writes every file of a run atomically — the export files ([`RunOutput::export`]),
-/// `config.json`, `refined.safetensors`, `evaluation.json`, the error maps — and `meta.json`
-/// exactly once, at the end ([`RunOutput::finish`]). Values computed by higher crates (the
-/// evaluation report, the rendered error maps) are handed over ready to serialise.
-#[derive(Debug)]
-pub struct RunOutput {
-    dir: PathBuf,
-    files: Vec<String>,
-}
-
-impl RunOutput {
-    /// Creates `dir` (and its parents) if needed.
-    pub fn create(dir: &Path) -> Result<Self, SceneError> {
-        std::fs::create_dir_all(dir).map_err(|e| ggpt_core::CoreError::io(dir, e))?;
-        Ok(RunOutput {
-            dir: dir.to_path_buf(),
-            files: Vec::new(),
-        })
-    }
-
-    /// The output folder.
-    pub fn dir(&self) -> &Path {
-        &self.dir
-    }
-
-    /// The result files written so far, relative to the folder, in write order (the export
-    /// files, `refined.safetensors`, `evaluation.json`, `error_maps/view_*.png`; not
-    /// `config.json` / `meta.json`): the `files` list of `meta.json`.
-    pub fn files(&self) -> &[String] {
-        &self.files
-    }
-
-    /// Writes the export files of §9 (PLY, npy / npz, COLMAP, as `opts` selects). `scene`
-    /// provides the images and the unaligned feed-forward points, `sfm` the cameras and DLT
-    /// points, `refined` the output of [`crate::driver::refine_scene`].
-    pub fn export(
-        &mut self,
-        scene: &Scene,
-        sfm: &SfmResult,
-        refined: &RefinedScene,
-        opts: &ExportOptions,
-    ) -> Result<ExportSummary, SceneError> {
-        let d = refined.dims;
-        let px = d.pixels();
-        check_len("export: refined points", refined.points.len(), 3 * px)?;
-        check_len("export: refined confidence", refined.conf.len(), px)?;
-        check_len("export: images", scene.images.len(), 3 * px)?;
-        check_len("export: sfm points", sfm.points.len(), 3 * px)?;
-        check_len("export: sfm mask", sfm.mask.len(), px)?;
-        let ff = scene.ff.as_ref().ok_or_else(|| {
-            SceneError::Invalid("export: the scene has no feed-forward prediction".into())
-        })?;
-        check_len("export: ff points", ff.points.len(), 3 * px)?;
-        let mut files = Vec::new();
-        if let Some(v) = opts.voxel_size
-            && !(v.is_finite() && v > 0.0)
-        {
-            return Err(SceneError::Invalid(format!(
-                "export: voxel size {v} must be positive"
-            )));
-        }
-        let (tau, keep) = select_points_voxel(
-            &refined.conf,
-            opts.voxel_size.map(|v| (refined.points.as_slice(), v)),
-            opts.conf_quantile,
-            opts.max_points,
-            opts.seed,
-        )?;
-        let mut sfm_count = 0;
-        if opts.ply {
-            let cols = colors(&scene.images, &keep);
-            let conf_of = |c: &[f32]| {
-                opts.ply_confidence.then(|| {
-                    keep.iter()
-                        .map(|&p| c.get(p as usize).copied().unwrap_or(0.0))
-                        .collect()
-                })
-            };
-            let refined_cloud = PlyCloud {
-                points: keep
-                    .iter()
-                    .map(|&p| p3(&refined.points, p as usize))
-                    .collect(),
-                colors: cols.clone(),
-                confidence: conf_of(&refined.conf),
-            };
-            write_ply(&self.dir.join("ggpt_points.ply"), &refined_cloud)?;
-            let ff_cloud = PlyCloud {
-                points: keep.iter().map(|&p| p3(&ff.points, p as usize)).collect(),
-                colors: cols,
-                confidence: conf_of(&ff.conf),
-            };
-            write_ply(&self.dir.join("ff_points.ply"), &ff_cloud)?;
-            let dlt: Vec<u32> = sfm
-                .mask
-                .iter()
-                .enumerate()
-                .filter(|(_, m)| **m)
-                .map(|(p, _)| p as u32)
-                .collect();
-            let dlt = subsample(&dlt, opts.max_points, opts.seed);
-            sfm_count = dlt.len();
-            let sfm_cloud = PlyCloud {
-                points: dlt.iter().map(|&p| p3(&sfm.points, p as usize)).collect(),
-                colors: colors(&scene.images, &dlt),
-                confidence: None,
-            };
-            write_ply(&self.dir.join("sfm_points.ply"), &sfm_cloud)?;
-            files.extend(["ggpt_points.ply", "ff_points.ply", "sfm_points.ply"].map(String::from));
-        }
-        if opts.arrays {
-            let (n, h, w) = (d.n, d.h, d.w);
-            let points = arr(vec![n, h, w, 3], NpyData::F32(refined.points.clone()))?;
-            let conf = arr(vec![n, h, w], NpyData::F32(refined.conf.clone()))?;
-            let covered = arr(vec![n, h, w], NpyData::Bool(refined.covered.clone()))?;
-            let depth = arr(
-                vec![n, h, w],
-                NpyData::F32(depth_map(&refined.points, &sfm.cameras, d.hw())?),
-            )?;
-            let cams = arr(
-                vec![n, 3, 4],
-                NpyData::F64(
-                    sfm.cameras
-                        .cam_from_world
-                        .iter()
-                        .flat_map(|m| (0..12).map(move |i| m[(i / 4, i % 4)]))
-                        .collect(),
-                ),
-            )?;
-            let ks = arr(
-                vec![n, 3, 3],
-                NpyData::F64(
-                    sfm.cameras
-                        .intrinsics
-                        .iter()
-                        .flat_map(|m| (0..9).map(move |i| m[(i / 3, i % 3)]))
-                        .collect(),
-                ),
-            )?;
-            let imgs = arr(
-                vec![n, h, w, 3],
-                NpyData::U8(scene.images.iter().map(|&v| color_u8(v)).collect()),
-            )?;
-            write_npy(&self.dir.join("points.npy"), &points)?;
-            write_npy(&self.dir.join("confidence.npy"), &conf)?;
-            write_npy(&self.dir.join("covered.npy"), &covered)?;
-            write_npy(&self.dir.join("depth.npy"), &depth)?;
-            let members = [
-                ("points", &points),
-                ("confidence", &conf),
-                ("covered", &covered),
-                ("depth", &depth),
-                ("cam_from_world", &cams),
-                ("K", &ks),
-                ("images_ff", &imgs),
-            ];
-            write_npz(&self.dir.join("scene.npz"), &members, false)?;
-            files.extend(
-                [
-                    "points.npy",
-                    "confidence.npy",
-                    "covered.npy",
-                    "depth.npy",
-                    "scene.npz",
-                ]
-                .map(String::from),
-            );
-        }
-        let mut colmap_count = 0;
-        if let Some(c) = &opts.colmap {
-            let names = image_names(opts, d.n)?;
-            let sizes: Vec<(usize, usize)> = match (c.resolution, &opts.image_sizes) {
-                (Some(r), _) => vec![r; d.n],
-                (None, Some(s)) if s.len() == d.n => s.clone(),
-                (None, Some(s)) => {
-                    return Err(SceneError::Invalid(format!(
-                        "export: {} image sizes for {} views",
-                        s.len(),
-                        d.n
-                    )));
-                }
-                (None, None) => vec![(d.h, d.w); d.n],
-            };
-            let pts = if c.points {
-                subsample(&keep, c.max_points, opts.seed)
-            } else {
-                Vec::new()
-            };
-            colmap_count = pts.len();
-            let cams = crate::splat::scale_cameras(&sfm.cameras, d, &sizes);
-            let model = colmap_model(refined, &scene.images, &cams, &sizes, &names, &pts, c)?;
-            write_colmap(&self.dir.join("sparse/0"), &model, c.text)?;
-            files.push("sparse/0".into());
-            if opts.splat {
-                crate::splat::write_images(
-                    &self.dir,
-                    &names,
-                    opts.image_files.as_deref(),
-                    &scene.images,
-                    d,
-                )?;
-                let ply = opts.ply.then_some("ggpt_points.ply");
-                let t = crate::splat::transforms_json(&cams, &sizes, &names, ply);
-                crate::splat::write_transforms(&self.dir, &t)?;
-                files.push(crate::splat::IMAGES_DIR.into());
-                files.push(crate::splat::TRANSFORMS_JSON.into());
+    let mut colmap_count = 0;
+    if let Some(c) = &opts.colmap {
+        let names = image_names(opts, d.n)?;
+        let sizes: Vec<(usize, usize)> = match (c.resolution, &opts.image_sizes) {
+            (Some(r), _) => vec![r; d.n],
+            (None, Some(s)) if s.len() == d.n => s.clone(),
+            (None, Some(s)) => {
+                return Err(SceneError::Invalid(format!(
+                    "export: {} image sizes for {} views",
+                    s.len(),
+                    d.n
+                )));
             }
-        }
-        let summary = ExportSummary {
-            threshold: tau,
-            ply_points: keep.len(),
-            sfm_points: sfm_count,
-            colmap_points: colmap_count,
-            files,
+            (None, None) => vec![(d.h, d.w); d.n],
         };
-        self.files.extend(summary.files.iter().cloned());
-        Ok(summary)
-    }
-
-    /// Writes the run configuration as `config.json`.
-    pub fn write_config(&mut self, config: &serde_json::Value) -> Result<(), SceneError> {
-        write_json_atomic(&self.dir.join(CONFIG_JSON), config)?;
-        Ok(())
-    }
-
-    /// Writes `refined.safetensors` ([`refined_safetensors_bytes`]).
-    pub fn write_refined(
-        &mut self,
-        refined: &RefinedScene,
-        sfm: &SfmResult,
-    ) -> Result<(), SceneError> {
-        let path = self.dir.join(REFINED_SAFETENSORS);
-        let bytes = refined_safetensors_bytes(&path, refined, sfm)?;
-        ggpt_core::io::atomic::write_bytes_atomic(&path, &bytes)?;
-        self.files.push(REFINED_SAFETENSORS.into());
-        Ok(())
-    }
-
-    /// Writes the evaluation report as `evaluation.json`.
-    pub fn write_evaluation(
-        &mut self,
-        evaluation: &impl serde::Serialize,
-    ) -> Result<(), SceneError> {
-        write_json_atomic(&self.dir.join(EVALUATION_JSON), evaluation)?;
-        self.files.push(EVALUATION_JSON.into());
-        Ok(())
-    }
-
-    /// Writes one PNG per view, `error_maps/view_{i:03}.png` (`maps[i]` = view `i`); returns
-    /// the paths written.
-    pub fn write_error_maps(&mut self, maps: &[Rgb8Image]) -> Result<Vec<PathBuf>, SceneError> {
-        let dir = self.dir.join(ERROR_MAP_DIR);
-        let mut paths = Vec::with_capacity(maps.len());
-        for (v, m) in maps.iter().enumerate() {
-            let path = dir.join(format!("view_{v:03}.png"));
-            ggpt_core::io::png::write_rgb8(&path, m.width, m.height, &m.rgb)?;
-            paths.push(path);
+        let pts = if c.points {
+            subsample(&keep, c.max_points, opts.seed)
+        } else {
+            Vec::new()
+        };
+        colmap_count = pts.len();
+        let cams = crate::splat::scale_cameras(&sfm.cameras, d, &sizes);
+        let model = colmap_model(refined, &scene.images, &cams, &sizes, &names, &pts, c)?;
+        write_colmap(&dir.join("sparse/0"), &model, c.text)?;
+        files.push("sparse/0".into());
+        if opts.splat {
+            crate::splat::write_images(dir, &names, opts.image_files.as_deref(), &scene.images, d)?;
+            let ply = opts.ply.then_some("ggpt_points.ply");
+            let t = crate::splat::transforms_json(&cams, &sizes, &names, ply);
+            crate::splat::write_transforms(dir, &t)?;
+            files.push(crate::splat::IMAGES_DIR.into());
+            files.push(crate::splat::TRANSFORMS_JSON.into());
         }
-        self.files.push(format!("{ERROR_MAP_DIR}/view_*.png"));
-        Ok(paths)
     }
-
-    /// Writes `meta.json` (once: the run is complete) and returns its path.
-    pub fn finish(self, meta: &serde_json::Value) -> Result<PathBuf, SceneError> {
-        let path = self.dir.join(META_JSON);
-        write_json_atomic(&path, meta)?;
-        Ok(path)
-    }
+    let summary = ExportSummary {
+        threshold: tau,
+        ply_points: keep.len(),
+        sfm_points: sfm_count,
+        colmap_points: colmap_count,
+        files,
+    };
+    Ok(summary)
 }
 
 #[cfg(test)]
@@ -798,9 +629,7 @@ mod tests {
             colmap: Some(colmap),
             ..ExportOptions::default()
         };
-        let cfg = serde_json::json!({"chunking": fixture_opts()});
-        let meta = serde_json::json!({"seed": 42});
-        let sum = export_scene(dir.path(), &scene, &sfm, &refined, &opts, &cfg, &meta).unwrap();
+        let sum = export_scene(dir.path(), &scene, &sfm, &refined, &opts).unwrap();
         let (tau, keep) = select_points(&refined.conf, 0.2, 2000, 42).unwrap();
         assert_eq!((sum.threshold, sum.ply_points), (tau, keep.len()));
         assert_eq!(keep.len(), 2000); // more than 2000 pass the filter: subsampled
@@ -885,10 +714,8 @@ mod tests {
             assert_eq!(p.xyz, p3(&refined.points, px as usize).map(f64::from));
             assert_eq!(p.rgb, p3(&scene.images, px as usize).map(color_u8));
         }
-        let meta: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(dir.path().join("meta.json")).unwrap()).unwrap();
-        assert_eq!(meta["seed"], 42);
-        assert_eq!(meta["export"]["ply_points"], 2000);
-        assert!(dir.path().join("config.json").is_file());
+        // every file listed was written; the run files are not the export's
+        assert!(sum.files.iter().all(|f| dir.path().join(f).exists()));
+        assert!(!dir.path().join("meta.json").exists());
     }
 }

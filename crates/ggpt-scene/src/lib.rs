@@ -9,7 +9,7 @@
 //! * [`fusion`]: streaming per-pixel fusion of refined chunks (§8).
 //! * [`driver`]: [`driver::refine_scene`], the whole refinement against a [`driver::ChunkRefiner`]
 //!   (the network is supplied by the caller), batched by a token budget (§7).
-//! * [`export`]: PLY / npy / npz / COLMAP / metadata export (§9).
+//! * [`export`]: PLY / npy / npz / COLMAP export (§9).
 //!
 //! Frames: the refined outputs live in the SfM frame (scene units); chunk records in the chunk
 //! frame `x' = (x - c) / r`. Arrays are flat in pixel order `p = (n * h + y) * w + x`.
