@@ -10,14 +10,15 @@
 //! * [`chunk_input`]: the per-pixel network input of one chunk (shared by planner, records and
 //!   training chunks).
 //! * [`resize`]: PyTorch-exact bilinear / nearest-exact resizing.
+//! * [`color`]: the `[0, 1]` -> `u8` colour conversion of the exports.
 //!
 //! Conventions (frames, pixel centres, units) are in `docs/conventions.md`.
 
 pub mod camera;
 pub mod chunk_input;
 pub mod chunking;
+pub mod color;
 pub mod error;
-pub mod figure;
 pub mod io;
 pub mod metrics;
 pub mod progress;

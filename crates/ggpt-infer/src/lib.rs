@@ -5,7 +5,8 @@
 //! * the model folder (weights, configuration, `inference.json`, the shipped model):
 //!   [`ggpt_model::model_dir`];
 //! * [`pipeline`]: [`pipeline::run_scene`] — SfM when needed, refinement, export, evaluation;
-//! * before / after metrics: [`ggpt_eval::refinement`]; [`error_maps`]: per-view PNG error maps;
+//! * before / after metrics: [`ggpt_eval::refinement`]; per-view error maps:
+//!   [`ggpt_eval::error_maps`];
 //! * [`run_output`]: [`run_output::RunOutput`], the one writer of the run folder, and its file
 //!   names;
 //! * [`demo`]: the synthetic end-to-end demo; [`rss`]: per-stage wall time and peak memory.
@@ -16,7 +17,6 @@
 pub mod demo;
 pub mod engine;
 pub mod error;
-pub mod error_maps;
 pub mod inputs;
 pub mod pipeline;
 pub mod refiner;

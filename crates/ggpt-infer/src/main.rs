@@ -170,7 +170,7 @@ struct CommonArgs {
     #[arg(long)]
     no_error_maps: bool,
     /// Upper end of the error-map colour scale (cm).
-    #[arg(long, default_value_t = ggpt_infer::error_maps::DEFAULT_ERROR_MAP_MAX_CM)]
+    #[arg(long, default_value_t = ggpt_eval::error_maps::DEFAULT_ERROR_MAP_MAX_CM)]
     error_map_max_cm: f64,
     #[command(flatten)]
     progress: ProgressArgs,

@@ -17,11 +17,11 @@ use ggpt_sfm::ba::CameraModel;
 use ggpt_sfm::masks::Preset;
 use ggpt_sfm::pipeline::{SfmConfig, SfmSummary, run_sfm_with_progress};
 
-use crate::error_maps::{DEFAULT_ERROR_MAP_MAX_CM, ErrorMapInputs, write_error_maps};
 use crate::refiner::{BurnRefiner, RefinerStats};
 use crate::rss::{StageLog, StageTiming, mib, peak_rss_bytes, reset_peak_rss};
 use crate::run_output::RunOutput;
 use crate::{InferError, Result};
+use ggpt_eval::error_maps::{DEFAULT_ERROR_MAP_MAX_CM, ErrorMapInputs, render_error_maps};
 use ggpt_eval::refinement::{SceneEvaluation, evaluate_refinement};
 
 /// A [`ChunkRefiner`] that reports what it did (the network stage of the timing table).
@@ -309,8 +309,7 @@ fn save_into(
         let detail = evaluate_refinement(scene, &sfm, &refined.points, opts.refine.seed)?;
         output.write_evaluation(&detail.summary)?;
         if opts.error_maps {
-            write_error_maps(
-                &mut output,
+            let maps = render_error_maps(
                 scene.dims,
                 &scene.images,
                 ErrorMapInputs {
@@ -320,6 +319,7 @@ fn save_into(
                 },
                 opts.error_map_max_cm,
             )?;
+            output.write_error_maps(&maps)?;
         }
         log.finish();
         evaluation = Some(detail.summary);

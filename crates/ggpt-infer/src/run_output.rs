@@ -10,6 +10,7 @@ use ggpt_core::io::st::StWriter;
 use ggpt_core::{Scene, SfmResult};
 use ggpt_scene::driver::RefinedScene;
 use ggpt_scene::export::{ExportOptions, ExportSummary, export_scene};
+use image::RgbImage;
 
 use crate::{InferError, Result};
 
@@ -24,17 +25,6 @@ pub const ERROR_MAP_DIR: &str = "error_maps";
 pub const CONFIG_JSON: &str = "config.json";
 /// Run metadata (`meta.json`, written once by [`RunOutput::finish`]).
 pub const META_JSON: &str = "meta.json";
-
-/// An RGB8 image for [`RunOutput::write_error_maps`]: `[height, width, 3]` row-major bytes.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Rgb8Image {
-    /// Width in pixels.
-    pub width: usize,
-    /// Height in pixels.
-    pub height: usize,
-    /// `3 * width * height` bytes, row-major RGB.
-    pub rgb: Vec<u8>,
-}
 
 /// Serialises `refined.safetensors`: `points` f32 `[N,h,w,3]` (SfM frame), `confidence` f32
 /// `[N,h,w]`, `covered` bool `[N,h,w]`, `aligned_ff_points` f32 `[N,h,w,3]` (the pre-aligned
@@ -135,14 +125,19 @@ impl RunOutput {
         Ok(())
     }
 
-    /// Writes one PNG per view, `error_maps/view_{i:03}.png` (`maps[i]` = view `i`); returns
-    /// the paths written.
-    pub fn write_error_maps(&mut self, maps: &[Rgb8Image]) -> Result<Vec<PathBuf>> {
+    /// Writes one PNG per view, `error_maps/view_{i:03}.png` (`maps[i]` = view `i`, rendered by
+    /// [`ggpt_eval::error_maps::render_error_maps`]); returns the paths written.
+    pub fn write_error_maps(&mut self, maps: &[RgbImage]) -> Result<Vec<PathBuf>> {
         let dir = self.dir.join(ERROR_MAP_DIR);
         let mut paths = Vec::with_capacity(maps.len());
         for (v, m) in maps.iter().enumerate() {
             let path = dir.join(format!("view_{v:03}.png"));
-            ggpt_core::io::png::write_rgb8(&path, m.width, m.height, &m.rgb)?;
+            ggpt_core::io::png::write_rgb8(
+                &path,
+                m.width() as usize,
+                m.height() as usize,
+                m.as_raw(),
+            )?;
             paths.push(path);
         }
         self.files.push(format!("{ERROR_MAP_DIR}/view_*.png"));
@@ -170,11 +165,7 @@ mod tests {
         out.write_config(&serde_json::json!({"seed": 1})).unwrap();
         out.write_evaluation(&serde_json::json!({"auc": 0.5}))
             .unwrap();
-        let map = Rgb8Image {
-            width: 2,
-            height: 1,
-            rgb: vec![255, 0, 0, 0, 0, 255],
-        };
+        let map = RgbImage::from_raw(2, 1, vec![255, 0, 0, 0, 0, 255]).unwrap();
         let paths = out.write_error_maps(&[map.clone(), map]).unwrap();
         assert_eq!(paths[1], root.join(ERROR_MAP_DIR).join("view_001.png"));
         let png = image::open(&paths[0]).unwrap().to_rgb8();

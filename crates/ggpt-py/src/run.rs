@@ -408,7 +408,7 @@ impl PyRefinedScene {
     /// `meta.json`; with ground truth also `evaluation.json` and error maps), each atomically;
     /// the options are `ggpt-infer run`'s export flags with the same defaults (`images`: the
     /// folder of original images, as `--images DIR`). Returns the folder.
-    #[pyo3(signature = (out, *, conf_quantile = ggpt_scene::export::DEFAULT_CONF_QUANTILE, max_points = ggpt_scene::export::DEFAULT_MAX_POINTS, colmap = true, colmap_text = false, colmap_points = true, colmap_max_points = ggpt_scene::export::DEFAULT_COLMAP_MAX_POINTS, colmap_resolution = None, colmap_simple_pinhole = false, voxel_size = None, splat = true, images = None, error_maps = true, error_map_max_cm = ggpt_infer::error_maps::DEFAULT_ERROR_MAP_MAX_CM))]
+    #[pyo3(signature = (out, *, conf_quantile = ggpt_scene::export::DEFAULT_CONF_QUANTILE, max_points = ggpt_scene::export::DEFAULT_MAX_POINTS, colmap = true, colmap_text = false, colmap_points = true, colmap_max_points = ggpt_scene::export::DEFAULT_COLMAP_MAX_POINTS, colmap_resolution = None, colmap_simple_pinhole = false, voxel_size = None, splat = true, images = None, error_maps = true, error_map_max_cm = ggpt_eval::error_maps::DEFAULT_ERROR_MAP_MAX_CM))]
     #[allow(clippy::too_many_arguments)]
     fn save(
         &self,

@@ -17,13 +17,13 @@
 
 use std::path::{Path, PathBuf};
 
+use ggpt_core::color::color_u8;
 use ggpt_core::io::colmap::{ColmapModel, ColmapPoint3D, write_colmap};
 use ggpt_core::io::npy::{NpyArray, NpyData, write_npy, write_npz};
 use ggpt_core::io::ply::{PlyCloud, write_ply};
 use ggpt_core::{Cameras, Scene, SfmResult};
 use rand::SeedableRng;
 
-use crate::color::color_u8;
 use crate::driver::RefinedScene;
 use crate::error::{SceneError, check_len};
 

@@ -16,7 +16,6 @@
 
 pub mod chunk_settings;
 pub mod chunker;
-pub mod color;
 pub mod driver;
 pub mod error;
 pub mod export;

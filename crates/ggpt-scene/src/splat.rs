@@ -109,7 +109,7 @@ pub fn write_images(
                 let hw = dims.hw();
                 let rgb: Vec<u8> = images_ff[3 * v * hw..3 * (v + 1) * hw]
                     .iter()
-                    .map(|&x| crate::color::color_u8(x))
+                    .map(|&x| ggpt_core::color::color_u8(x))
                     .collect();
                 ggpt_core::io::png::write_rgb8(&dest, dims.w, dims.h, &rgb)?;
             }

@@ -208,8 +208,8 @@ pub struct FigureSummary {
     pub val_plot: Option<Rect>,
 }
 
-/// The embedded font ([`ggpt_core::figure::FONT_TTF`], DejaVu Sans).
-static FONT_TTF: &[u8] = ggpt_core::figure::FONT_TTF;
+/// The embedded font ([`ggpt_eval::figure::FONT_TTF`], DejaVu Sans).
+static FONT_TTF: &[u8] = ggpt_eval::figure::FONT_TTF;
 /// Family the embedded font is registered under (plotters' default for axis labels).
 const FONT: &str = "sans-serif";
 /// Font size of the panel titles.

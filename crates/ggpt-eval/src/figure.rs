@@ -1,4 +1,4 @@
-//! A small RGB canvas for figures written as PNG (the error maps of `ggpt-infer`): rectangles,
+//! A small RGB canvas for figures written as PNG (the error maps, [`crate::error_maps`]): rectangles,
 //! pixel blocks and text in the embedded font, with no system font lookup.
 //!
 //! Hand-written because the error maps are image panels with a title row and a colour bar:

@@ -13,14 +13,12 @@
 //! panels share one scale: errors clamped to `[0, max_cm]`, Turbo colours (blue = 0, red =
 //! `max_cm`). Pixels without GT (or, in the SfM panel, without an SfM point) are dark grey.
 
-use std::path::PathBuf;
-
 use ggpt_core::Dims;
-use ggpt_core::figure::Canvas;
 use ggpt_core::metrics::PointEvaluation;
+use image::RgbImage;
 
-use crate::run_output::{Rgb8Image, RunOutput};
-use crate::{InferError, Result};
+use crate::figure::Canvas;
+use crate::{EvalError, Result};
 
 /// Default upper end of the colour scale (cm).
 pub const DEFAULT_ERROR_MAP_MAX_CM: f64 = 10.0;
@@ -64,7 +62,7 @@ pub fn turbo(t: f64) -> [u8; 3] {
 fn error_image(ev: &PointEvaluation, dims: Dims, max_cm: f64) -> Result<Vec<[u8; 3]>> {
     let px = dims.pixels();
     if ev.mask.len() != px {
-        return Err(InferError::Invalid(format!(
+        return Err(EvalError::Invalid(format!(
             "error map: evaluation mask has {} pixels, expected {px}",
             ev.mask.len()
         )));
@@ -73,7 +71,7 @@ fn error_image(ev: &PointEvaluation, dims: Dims, max_cm: f64) -> Result<Vec<[u8;
     let mut errors = ev.errors_cm.iter();
     for (p, _) in ev.mask.iter().enumerate().filter(|(_, m)| **m) {
         let e = errors.next().ok_or_else(|| {
-            InferError::Invalid("error map: fewer errors than evaluated pixels".into())
+            EvalError::Invalid("error map: fewer errors than evaluated pixels".into())
         })?;
         if let Some(o) = out.get_mut(p) {
             *o = turbo(e / max_cm);
@@ -92,19 +90,6 @@ pub struct ErrorMapInputs<'a> {
     pub sfm: Option<&'a PointEvaluation>,
     /// Refined points.
     pub refined: &'a PointEvaluation,
-}
-
-/// Writes the error maps of [`render_error_maps`] through the run's output writer
-/// (`error_maps/view_{i:03}.png`, [`RunOutput::write_error_maps`]). Returns the files written.
-pub fn write_error_maps(
-    out: &mut RunOutput,
-    dims: Dims,
-    images: &[f32],
-    inputs: ErrorMapInputs<'_>,
-    max_cm: f64,
-) -> Result<Vec<PathBuf>> {
-    let maps = render_error_maps(dims, images, inputs, max_cm)?;
-    out.write_error_maps(&maps)
 }
 
 /// Tick step of the colour bar for a scale of `max_cm`: 1, 2 or 5 × 10^k, about 5 ticks.
@@ -144,16 +129,16 @@ pub fn render_error_maps(
     images: &[f32],
     inputs: ErrorMapInputs<'_>,
     max_cm: f64,
-) -> Result<Vec<Rgb8Image>> {
+) -> Result<Vec<RgbImage>> {
     if images.len() != 3 * dims.pixels() {
-        return Err(InferError::Invalid(format!(
+        return Err(EvalError::Invalid(format!(
             "error map: {} image values for {} pixels",
             images.len(),
             dims.pixels()
         )));
     }
     if max_cm.is_nan() || max_cm <= 0.0 {
-        return Err(InferError::Invalid(format!(
+        return Err(EvalError::Invalid(format!(
             "error map: colour scale maximum must be > 0 cm, got {max_cm}"
         )));
     }
@@ -186,7 +171,7 @@ pub fn render_error_maps(
         let view = first..first + h * w;
         let image: Vec<[u8; 3]> = images[3 * view.start..3 * view.end]
             .chunks_exact(3)
-            .map(|c| [c[0], c[1], c[2]].map(ggpt_scene::color::color_u8))
+            .map(|c| [c[0], c[1], c[2]].map(ggpt_core::color::color_u8))
             .collect();
         for (k, (panel, title)) in [
             &image[..],
@@ -235,11 +220,12 @@ pub fn render_error_maps(
             &fit("point error", w),
             INK,
         );
-        maps.push(Rgb8Image {
-            width,
-            height,
-            rgb: canvas.rgb,
-        });
+        let image = u32::try_from(width)
+            .ok()
+            .zip(u32::try_from(height).ok())
+            .and_then(|(w, h)| RgbImage::from_raw(w, h, canvas.rgb))
+            .ok_or_else(|| EvalError::Invalid(format!("error map: {width}x{height} too large")))?;
+        maps.push(image);
     }
     Ok(maps)
 }
@@ -261,7 +247,7 @@ mod tests {
     }
 
     #[test]
-    fn writes_four_panel_pngs_with_titles_and_a_colour_bar() {
+    fn renders_four_panels_with_titles_and_a_colour_bar() {
         let dims = Dims { n: 2, h: 3, w: 4 };
         let px = dims.pixels();
         let mask: Vec<bool> = (0..px).map(|p| p % 5 != 0).collect();
@@ -283,17 +269,15 @@ mod tests {
             errors_cm: errors,
             mask,
         };
-        let dir = tempfile::tempdir().unwrap();
-        let mut out = RunOutput::create(dir.path()).unwrap();
         let images = vec![0.5f32; 3 * px];
         let inputs = ErrorMapInputs {
             ff: &ev,
             sfm: Some(&ev),
             refined: &ev,
         };
-        let files = write_error_maps(&mut out, dims, &images, inputs, 10.0).unwrap();
-        assert_eq!(files.len(), 2);
-        let img = image::open(&files[1]).unwrap().to_rgb8();
+        let maps = render_error_maps(dims, &images, inputs, 10.0).unwrap();
+        assert_eq!(maps.len(), 2);
+        let img = &maps[1];
         let (w, h) = (dims.w as u32, dims.h as u32);
         let pw = w + GAP as u32;
         assert_eq!(
@@ -329,10 +313,9 @@ mod tests {
             10.0,
         )
         .unwrap();
-        let p = 3 * ((TITLE_H * maps[1].width) + 2 * pw as usize);
-        assert_eq!(&maps[1].rgb[p..p + 3], &NO_GT_COLOR);
-        assert!(write_error_maps(&mut out, dims, &images[1..], inputs, 10.0).is_err());
-        assert!(write_error_maps(&mut out, dims, &images, inputs, 0.0).is_err());
+        assert_eq!(maps[1].get_pixel(2 * pw, y0).0, NO_GT_COLOR);
+        assert!(render_error_maps(dims, &images[1..], inputs, 10.0).is_err());
+        assert!(render_error_maps(dims, &images, inputs, 0.0).is_err());
     }
 
     #[test]

@@ -1,4 +1,4 @@
-//! Colour conversion of the official export (`formats.md`, PLY and images).
+//! Colour conversion of the official export (`formats.md`, PLY and images) and of the error maps.
 
 /// Colour conversion of the official export: `floor(255 · clamp(v, 0, 1))` in `f32`.
 pub fn color_u8(v: f32) -> u8 {
