@@ -293,9 +293,10 @@ fn save_into(
         c.shared_camera = k.windows(2).all(|w| w[0] == w[1]);
         // the BA's camera model, except for the original images of a splat-ready export: their
         // cameras are scaled per axis (PINHOLE, docs/images-to-splats.md)
-        if sfm_summary.is_some() && export_opts.image_sizes.is_none() {
-            c.simple_pinhole |=
-                SfmConfig::preset(opts.sfm_preset).camera_model == CameraModel::SimplePinhole;
+        if let Some(s) = &sfm_summary
+            && export_opts.image_sizes.is_none()
+        {
+            c.simple_pinhole |= s.camera_model == CameraModel::SimplePinhole;
         }
     }
     let summary = output.export(scene, &sfm, &refined, &export_opts)?;

@@ -117,6 +117,8 @@ pub struct SfmSummary {
     pub preset: String,
     /// Thresholds used.
     pub thresholds: Thresholds,
+    /// BA camera model (`PINHOLE` / `SIMPLE_PINHOLE`): the model of the cameras of the result.
+    pub camera_model: CameraModel,
     /// Views, ff height and width.
     pub views: usize,
     /// ff height.
@@ -517,6 +519,7 @@ pub fn run_sfm_correspondences_with_progress(
     let summary = SfmSummary {
         preset: cfg.preset.name().into(),
         thresholds: cfg.thresholds,
+        camera_model: cfg.camera_model,
         views: n,
         height: dims.h,
         width: dims.w,

@@ -73,6 +73,7 @@ fn fixture_end_to_end_with_recorded_cameras() {
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["points_kept"], 7794);
+    assert_eq!(summary["camera_model"], "PINHOLE"); // the benchmark preset's BA model
 
     // COLMAP model: the recorded cameras, and the 93 BA tracks (BA skipped: triangulated from
     // their BA observations with those cameras) minus the tracks the 4 px filter empties

@@ -53,8 +53,9 @@ pub const MIN_DEPTH: f64 = 1e-8;
 /// zero, with zero Jacobians (`sfm.md` §7.2). The official BA runs on that cost, so ours does too.
 pub const PROJECTION_MIN_DEPTH: f64 = f64::EPSILON;
 
-/// Camera model of the bundle adjustment (`sfm.md` §7.1).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// Camera model of the bundle adjustment (`sfm.md` §7.1); serialised as its COLMAP name.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "SCREAMING_SNAKE_CASE")]
 pub enum CameraModel {
     /// `fx`, `fy` refined separately (COLMAP `PINHOLE`).
     Pinhole,
