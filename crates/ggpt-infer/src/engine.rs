@@ -113,7 +113,8 @@ impl Refiner {
     }
 
     /// Refines `scene` in memory (nothing is written): the SfM stage first when the scene has
-    /// no SfM result (stored in `scene.sfm`), then pre-alignment, chunks, network and fusion
+    /// no SfM result (the SfM result moves from `scene.sfm` into [`RefinedRun::sfm`]), then
+    /// pre-alignment, chunks, network and fusion
     /// ([`crate::pipeline::refine_run`]) with the chunk sampler of
     /// [`Refiner::resolve_chunking`]. Deterministic for a given seed (`opts.refine.seed`,
     /// `opts.refine.chunk_seed`). `opts.refine.cancel` stops it between SfM steps, BA

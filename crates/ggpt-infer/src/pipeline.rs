@@ -80,7 +80,7 @@ pub struct RunReport {
     pub out_dir: PathBuf,
     /// Fused result (SfM frame).
     pub refined: RefinedScene,
-    /// The SfM result used (read from the scene, or computed).
+    /// The SfM result used (moved out of `scene.sfm`, or computed).
     pub sfm: SfmResult,
     /// Summary of the SfM stage when it ran here.
     pub sfm_summary: Option<SfmSummary>,
@@ -94,19 +94,20 @@ pub struct RunReport {
     pub stages: Vec<StageTiming>,
 }
 
-/// Runs the SfM stage (`sfm.md`) when the scene has feed-forward outputs and matches but no SfM
-/// result; returns its summary (`None` when the scene already had an SfM result). `progress`
-/// receives the SfM stage's reports (`ggpt_sfm::pipeline::PROGRESS_STAGE`); `cancel` stops it
-/// between steps and BA iterations.
+/// The SfM result of `scene`, with the summary of the SfM stage when it ran here: the scene's
+/// own result is moved out of `scene.sfm` (no copy; summary `None`), else the SfM stage
+/// (`sfm.md`) runs on the scene's feed-forward outputs and matches. `progress` receives the SfM
+/// stage's reports (`ggpt_sfm::pipeline::PROGRESS_STAGE`); `cancel` stops it between steps and
+/// BA iterations.
 pub fn ensure_sfm(
     scene: &mut Scene,
     preset: Preset,
     seed: u64,
     cancel: &ggpt_core::Cancel,
     progress: &mut dyn FnMut(Progress),
-) -> Result<Option<SfmSummary>> {
-    if scene.sfm.is_some() {
-        return Ok(None);
+) -> Result<(SfmResult, Option<SfmSummary>)> {
+    if let Some(sfm) = scene.sfm.take() {
+        return Ok((sfm, None));
     }
     let ff = scene.ff.as_ref().ok_or_else(|| {
         InferError::Invalid(format!("scene {}: no feed-forward prediction", scene.name))
@@ -139,8 +140,7 @@ pub fn ensure_sfm(
         },
         out.summary.tracks_selected
     );
-    scene.sfm = Some(out.result);
-    Ok(Some(out.summary))
+    Ok((out.result, Some(out.summary)))
 }
 
 /// The refinement of one scene, before anything is written: what [`refine_run`] computed.
@@ -148,7 +148,7 @@ pub fn ensure_sfm(
 pub struct RefinedRun {
     /// Fused result (SfM frame).
     pub refined: RefinedScene,
-    /// The SfM result used (read from the scene, or computed).
+    /// The SfM result used (moved out of `scene.sfm`, or computed).
     pub sfm: SfmResult,
     /// Summary of the SfM stage when it ran here.
     pub sfm_summary: Option<SfmSummary>,
@@ -160,7 +160,8 @@ pub struct RefinedRun {
     pub chunking: Option<ResolvedChunking>,
 }
 
-/// SfM if needed (the result is stored in `scene.sfm`), pre-alignment, chunking, network and
+/// SfM if needed ([`ensure_sfm`]: the scene's SfM result, or the computed one, moves into
+/// [`RefinedRun::sfm`] and `scene.sfm` is left `None`), pre-alignment, chunking, network and
 /// fusion; writes nothing. `log` receives the stages `sfm`, `prealign+chunking`, `network`,
 /// `records+fusion`; `progress` the reports of the SfM stage (when it runs) and of the
 /// refinement (stage `ggpt_scene::driver::PROGRESS_STAGE`, one unit per chunk). The stop
@@ -173,7 +174,7 @@ pub fn refine_run(
     progress: &mut dyn FnMut(Progress),
 ) -> Result<RefinedRun> {
     log.start("sfm");
-    let sfm_summary = ensure_sfm(
+    let (sfm, sfm_summary) = ensure_sfm(
         scene,
         opts.sfm_preset,
         opts.refine.seed,
@@ -181,10 +182,6 @@ pub fn refine_run(
         progress,
     )?;
     log.finish();
-    let sfm = scene
-        .sfm
-        .clone()
-        .ok_or_else(|| InferError::Invalid("no SfM result".into()))?;
 
     // Refinement: prealign + chunking | network | records + un-normalise + fusion.
     let _ = refiner.take_stats();

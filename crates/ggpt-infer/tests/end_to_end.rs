@@ -392,9 +392,10 @@ fn tiny_scene_end_to_end_wgpu_matches_ndarray() {
         &opts,
         &dir.path().join("ndarray"),
     );
-    // The scene now holds the SfM result: both runs refine the same SfM guidance.
-    assert!(scene.sfm.is_some());
+    // The run moved the SfM result out of the scene: the wgpu run gets the same guidance.
+    assert!(scene.sfm.is_none());
     let mut scene_w = scene.clone();
+    scene_w.sfm = Some(nd.sfm.clone());
     let out = dir.path().join("wgpu");
     let wg = run_on("wgpu", &spec, &mut scene_w, &opts, &out);
     assert!(
@@ -454,7 +455,7 @@ fn tiny_scene_with_sfm() -> ggpt_core::Scene {
     })
     .unwrap()
     .scene;
-    ggpt_infer::pipeline::ensure_sfm(
+    let (sfm, _) = ggpt_infer::pipeline::ensure_sfm(
         &mut scene,
         ggpt_sfm::masks::Preset::Demo,
         42,
@@ -462,6 +463,7 @@ fn tiny_scene_with_sfm() -> ggpt_core::Scene {
         &mut ggpt_core::progress::ignore,
     )
     .unwrap();
+    scene.sfm = Some(sfm);
     scene
 }
 
