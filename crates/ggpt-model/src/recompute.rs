@@ -186,6 +186,24 @@ fn run<T, E>(
                 continue;
             }
             drop_path::restore_mask_rng(&rng_before[k]);
+            if part == BlockPart::Mlp
+                && let [i] = seg.inputs.as_slice()
+            {
+                // row-wise: re-run and differentiate one row block at a time, so the graph
+                // holds one block's hidden activations (the drop-path mask draws one value per
+                // row in order, so the blocks draw the forward's mask)
+                let d_x = mlp_rows_backward(
+                    model,
+                    batch,
+                    seg.op,
+                    slot(&values, *i, &device),
+                    g,
+                    MLP_RERUN_BLOCK_FLOATS,
+                    &mut acc,
+                );
+                add_slot_grad(&mut slot_grads, *i, Some(d_x));
+                continue;
+            }
         }
         let outs =
             norm::without_running_updates(|| model.run_segment(batch, seg.op, &args, &mut rec));
@@ -203,6 +221,60 @@ fn run<T, E>(
         crate::grads::collect(model, &mut grads, &mut acc);
     }
     Ok((acc, extra))
+}
+
+/// Floats of one row block's MLP graph in the re-run ([`mlp_rows_backward`]): 16 MiB of f32.
+pub const MLP_RERUN_BLOCK_FLOATS: usize = 4 * 1024 * 1024;
+
+/// The gradient of the MLP segment `op` (`x [N, C] -> x + DropPath(MLP(LN2(x)))`, row-wise)
+/// for the output gradient `g [N, C]`, re-run under autodiff one row block at a time (each
+/// block's graph about `block_floats` floats: `2 hidden + 4 C` per row): returns the gradient
+/// of `x` and adds the parameter gradients into `acc`.
+fn mlp_rows_backward(
+    model: &Ggpt,
+    batch: &PreparedBatch,
+    op: Op,
+    x: Tensor<2>,
+    g: &Tensor<2>,
+    block_floats: usize,
+    acc: &mut GradientsParams,
+) -> Tensor<2> {
+    let [n, c] = x.dims();
+    let hidden = match op {
+        Op::Block { stage, block, .. } => model.stage_blocks(batch, stage).0[block]
+            .mlp
+            .fc1
+            .weight
+            .dims()[1],
+        _ => 4 * c,
+    };
+    let rows = (block_floats / (2 * hidden + 4 * c).max(1)).max(1);
+    let mut rec = Recorder::disabled();
+    let mut d_x = Vec::with_capacity(n.div_ceil(rows));
+    let mut r0 = 0;
+    while r0 < n {
+        let m = rows.min(n - r0);
+        let leaf = x.clone().narrow(0, r0, m).autodiff().require_grad();
+        let outs = norm::without_running_updates(|| {
+            model.run_segment(batch, op, std::slice::from_ref(&leaf), &mut rec)
+        });
+        let g_rows = g.clone().narrow(0, r0, m).autodiff();
+        if let Some(y) = outs.into_iter().next() {
+            let mut grads = (y * g_rows).sum().backward();
+            d_x.push(
+                leaf.grad_remove(&mut grads)
+                    .unwrap_or_else(|| Tensor::zeros([m, c], &x.device())),
+            );
+            crate::grads::collect(model, &mut grads, acc);
+        }
+        r0 += m;
+    }
+    match d_x.len() {
+        1 => d_x
+            .pop()
+            .unwrap_or_else(|| Tensor::zeros([n, c], &x.device())),
+        _ => Tensor::cat(d_x, 0),
+    }
 }
 
 /// Profile key of a segment kind (`enc2.attn`, `down`, ...): [`crate::profile`] sums the
@@ -557,6 +629,74 @@ mod tests {
                     assert!(compared >= 4, "{label}: {compared} parameter gradients");
                 }
             }
+        }
+        drop_path::seed_drop_path(None);
+    }
+
+    /// The MLP segment's row-block re-run (blocks of 7 rows) equals autodiff of the whole part,
+    /// with and without an active drop path (the blocks draw the forward's mask).
+    #[test]
+    fn mlp_row_blocks_equal_autodiff_of_the_part() {
+        let _rng = rng_lock();
+        let device = crate::device::device_from_name("ndarray")
+            .unwrap()
+            .autodiff();
+        let host = device.clone().without_autodiff();
+        let mut cfg = GgptConfig::tiny();
+        cfg.drop_path = 0.3;
+        host.seed(6);
+        let model = Ggpt::new(&cfg, &host).fork(&device).train();
+        let batch = prepare_chunks(&cfg, &[surface_chunk(300, 3)], &device).unwrap();
+        let stage = Stage::Enc(1);
+        let (blocks, level) = model.stage_blocks(&batch, stage);
+        let active = blocks
+            .iter()
+            .position(|b| b.drop_path.prob > 0.0)
+            .expect("a block with drop path");
+        let c = blocks[0].norm2.gamma.val().dims()[0];
+        let random = |seed: u64| {
+            host.seed(seed);
+            Tensor::<2>::random(
+                [level.num_tokens, c],
+                Distribution::Uniform(-1.0, 1.0),
+                &host,
+            )
+        };
+        let (x, g) = (random(13), random(14));
+        assert!(level.num_tokens > 3 * 7, "several row blocks");
+        for block in [0, active] {
+            let b = &blocks[block];
+            drop_path::seed_drop_path(Some(9));
+            let xa = x.clone().autodiff().require_grad();
+            let mut rec = Recorder::disabled();
+            let y = b.mlp_part(xa.clone(), &mut rec, "enc1.block");
+            let mut grads = (y * g.clone().autodiff()).sum().backward();
+            let want_x = read_tensor_f32(&xa.grad_remove(&mut grads).unwrap(), "x").unwrap();
+            let mut want = GradientsParams::new();
+            crate::grads::collect(&model, &mut grads, &mut want);
+            let want = flat(&model, &want);
+
+            drop_path::seed_drop_path(Some(9));
+            let hidden = b.mlp.fc1.weight.dims()[1];
+            let op = Op::Block {
+                stage,
+                block,
+                part: BlockPart::Mlp,
+            };
+            let mut acc = GradientsParams::new();
+            let floats = 7 * (2 * hidden + 4 * c);
+            let d_x = mlp_rows_backward(&model, &batch, op, x.clone(), &g, floats, &mut acc);
+            let label = format!("block {block}");
+            assert_close(&label, &want_x, &read_tensor_f32(&d_x, "d x").unwrap());
+            let got = flat(&model, &acc);
+            let mut compared = 0;
+            for ((name, w), (_, got)) in want.iter().zip(&got) {
+                if !w.is_empty() {
+                    assert_close(&format!("{label} {name}"), w, got);
+                    compared += 1;
+                }
+            }
+            assert_eq!(compared, 6, "{label}: LN2 (2), fc1 (2), fc2 (2)");
         }
         drop_path::seed_drop_path(None);
     }
