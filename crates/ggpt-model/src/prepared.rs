@@ -32,18 +32,6 @@ pub struct ConvIndex {
     pub layout: ConvLayout,
 }
 
-impl ConvIndex {
-    /// Tokens `N` of the level.
-    pub fn num_tokens(&self) -> usize {
-        self.layout.num_tokens
-    }
-
-    /// Occupied slots / `27 N` (1 = every token has all 27 neighbours).
-    pub fn occupancy(&self) -> f64 {
-        self.layout.occupancy
-    }
-}
-
 /// Window groups of equal length of one order row.
 #[derive(Debug, Clone)]
 pub struct WindowGroup {

@@ -3,7 +3,9 @@
 //! ([`crate::device_stats::note_readback`]); a failed device execution becomes a
 //! [`ModelError::Readback`] naming the tensor instead of a panic.
 
-use burn::tensor::{Int, Tensor};
+use burn::backend::Backend;
+use burn::backend::tensor::IntTensor;
+use burn::tensor::{Int, Tensor, TensorData};
 
 use crate::error::{ModelError, Result};
 
@@ -49,12 +51,18 @@ pub(crate) fn read_values<const D: usize>(t: Tensor<D>) -> Option<Vec<f32>> {
 /// [`crate::host_conv_grad::HostConvTables`]).
 pub(crate) fn read_indices(t: &Tensor<1, Int>) -> Option<Vec<usize>> {
     crate::device_stats::note_readback();
-    let v = t
-        .clone()
-        .try_into_data()
-        .ok()?
-        .convert::<i64>()
-        .try_to_vec::<i64>()
-        .ok()?;
+    indices_of(t.clone().try_into_data().ok()?)
+}
+
+/// [`read_indices`] for a backend's int primitive (inside the kernel layer, where no `Tensor`
+/// wraps it).
+pub(crate) fn read_indices_primitive<B: Backend>(t: &IntTensor<B>) -> Option<Vec<usize>> {
+    crate::device_stats::note_readback();
+    indices_of(burn::tensor::try_read_sync(B::int_into_data(t.clone()))?.ok()?)
+}
+
+/// The entries of an index table as `usize`; `None` when one is negative.
+fn indices_of(data: TensorData) -> Option<Vec<usize>> {
+    let v = data.convert::<i64>().try_to_vec::<i64>().ok()?;
     v.into_iter().map(|x| usize::try_from(x).ok()).collect()
 }

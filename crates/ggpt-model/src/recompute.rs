@@ -192,15 +192,9 @@ fn run<T, E>(
                 // row-wise: re-run and differentiate one row block at a time, so the graph
                 // holds one block's hidden activations (the drop-path mask draws one value per
                 // row in order, so the blocks draw the forward's mask)
-                let d_x = mlp_rows_backward(
-                    model,
-                    batch,
-                    seg.op,
-                    slot(&values, *i, &device),
-                    g,
-                    MLP_RERUN_BLOCK_FLOATS,
-                    &mut acc,
-                );
+                let x = slot(&values, *i, &device);
+                let rows = mlp_rerun_rows(b.mlp.fc1.weight.dims()[1], x.dims()[1]);
+                let d_x = mlp_rows_backward(model, batch, seg.op, x, g, rows, &mut acc);
                 add_slot_grad(&mut slot_grads, *i, Some(d_x));
                 continue;
             }
@@ -226,29 +220,26 @@ fn run<T, E>(
 /// Floats of one row block's MLP graph in the re-run ([`mlp_rows_backward`]): 16 MiB of f32.
 pub const MLP_RERUN_BLOCK_FLOATS: usize = 4 * 1024 * 1024;
 
+/// Rows per block of the MLP re-run for `hidden` and `c` channels: a block's graph holds about
+/// `2 hidden + 4 C` floats per row, at most [`MLP_RERUN_BLOCK_FLOATS`] (at least one row).
+fn mlp_rerun_rows(hidden: usize, c: usize) -> usize {
+    (MLP_RERUN_BLOCK_FLOATS / (2 * hidden + 4 * c).max(1)).max(1)
+}
+
 /// The gradient of the MLP segment `op` (`x [N, C] -> x + DropPath(MLP(LN2(x)))`, row-wise)
-/// for the output gradient `g [N, C]`, re-run under autodiff one row block at a time (each
-/// block's graph about `block_floats` floats: `2 hidden + 4 C` per row): returns the gradient
-/// of `x` and adds the parameter gradients into `acc`.
+/// for the output gradient `g [N, C]`, re-run under autodiff `rows` rows at a time: returns the
+/// gradient of `x` and adds the parameter gradients into `acc`.
 fn mlp_rows_backward(
     model: &Ggpt,
     batch: &PreparedBatch,
     op: Op,
     x: Tensor<2>,
     g: &Tensor<2>,
-    block_floats: usize,
+    rows: usize,
     acc: &mut GradientsParams,
 ) -> Tensor<2> {
     let [n, c] = x.dims();
-    let hidden = match op {
-        Op::Block { stage, block, .. } => model.stage_blocks(batch, stage).0[block]
-            .mlp
-            .fc1
-            .weight
-            .dims()[1],
-        _ => 4 * c,
-    };
-    let rows = (block_floats / (2 * hidden + 4 * c).max(1)).max(1);
+    let rows = rows.max(1);
     let mut rec = Recorder::disabled();
     let mut d_x = Vec::with_capacity(n.div_ceil(rows));
     let mut r0 = 0;
@@ -677,15 +668,13 @@ mod tests {
             let want = flat(&model, &want);
 
             drop_path::seed_drop_path(Some(9));
-            let hidden = b.mlp.fc1.weight.dims()[1];
             let op = Op::Block {
                 stage,
                 block,
                 part: BlockPart::Mlp,
             };
             let mut acc = GradientsParams::new();
-            let floats = 7 * (2 * hidden + 4 * c);
-            let d_x = mlp_rows_backward(&model, &batch, op, x.clone(), &g, floats, &mut acc);
+            let d_x = mlp_rows_backward(&model, &batch, op, x.clone(), &g, 7, &mut acc);
             let label = format!("block {block}");
             assert_close(&label, &want_x, &read_tensor_f32(&d_x, "d x").unwrap());
             let got = flat(&model, &acc);

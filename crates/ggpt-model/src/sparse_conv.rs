@@ -37,7 +37,7 @@ impl SubmConv3d {
 
     /// `x [N, C_in] -> [N, C_out]` over the level's neighbour tables.
     ///
-    /// The CPU backends with sparse neighbourhoods ([`ConvIndex::occupancy`] below
+    /// The CPU backends with sparse neighbourhoods ([`crate::conv_layout::ConvLayout::occupancy`] below
     /// [`crate::kernels::conv::TAPWISE_MAX_OCCUPANCY`]) use the tap-wise form (only occupied
     /// slots are multiplied); other backends the im2col GEMM. Both compute the same sums (up to
     /// f32 rounding order).

@@ -28,6 +28,7 @@ use super::composed::narrow_rows;
 use super::host::HostFloat;
 use crate::conv_layout::{ConvLayout, NUM_TAPS, Span};
 use crate::host_conv_grad::{HostConvTables, subm_conv_backward};
+use crate::readback::read_indices_primitive;
 
 /// Upper bound on the floats of one gathered block (64 MiB of f32).
 pub const IM2COL_BUDGET_FLOATS: usize = 16 * 1024 * 1024;
@@ -90,11 +91,11 @@ pub fn subm_conv_im2col<B: GgptKernels>(
 ) -> FloatTensor<B> {
     let [n, c_in] = [x.shape()[0], x.shape()[1]];
     let c_out = weight.shape()[0];
-    let w_mat = weight_matrix::<B>(weight);
-    let bias = B::float_reshape(bias, [1, c_out].into());
     if n == 0 {
         return B::float_zeros([n, c_out].into(), &x.device(), x.dtype().into());
     }
+    let w_mat = weight_matrix::<B>(weight);
+    let bias = B::float_reshape(bias, [1, c_out].into());
     let im2col = table::<B>(tables, layout.im2col());
     let x_ext = extended_input::<B>(x, tables, layout);
     let block = rows_per_block(NUM_TAPS * c_in);
@@ -240,20 +241,10 @@ pub fn subm_conv_backward_composed<B: GgptKernels>(
     (dx, d_weight, d_bias)
 }
 
-/// The values of a 1-D index as `usize`; `None` when it cannot be read or has a negative entry.
-fn read_index<B: Backend>(t: &IntTensor<B>) -> Option<Vec<usize>> {
-    let data = burn::tensor::try_read_sync(B::int_into_data(t.clone()))?.ok()?;
-    let values = data.convert::<i64>().to_vec::<i64>().ok()?;
-    values
-        .into_iter()
-        .map(|v| usize::try_from(v).ok())
-        .collect()
-}
-
 /// The host copy of the tables ([`HostConvTables`]); `None` when the list cannot be read or
 /// is inconsistent.
 fn host_tables<B: Backend>(tables: &IntTensor<B>, layout: &ConvLayout) -> Option<HostConvTables> {
-    HostConvTables::from_packed(&read_index::<B>(tables)?, layout)
+    HostConvTables::from_packed(&read_indices_primitive::<B>(tables)?, layout)
 }
 
 /// `(x, weight, grad)` handed back for the composed fallback, or `(d x, d weight, d bias)`.
